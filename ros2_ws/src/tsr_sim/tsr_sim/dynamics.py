@@ -1,0 +1,129 @@
+"""Dimensionless deployment dynamics of a tethered space robot (TSR), ROS-free and vectorised.
+
+Model: Jin, Zhang, Huang, "Data-driven optimal control of TSR deployment with learning based
+Koopman operator" (arXiv 2307.07713), eq. (1)-(3), after Williams (2008). Time is tau = Omega t,
+length l = length / L, tension u = T / (m Omega^2 L); ``tsr_sim.units`` converts to and from SI.
+
+State layout (the one definition every module uses)::
+
+    planar (n = 4):  x = [theta, theta', l - 1, l']
+    3-D    (n = 6):  x = [theta, theta', l - 1, l', beta, beta']
+
+The 3-D layout extends the planar one, so ``x[..., :4]`` is always the in-plane state. Every
+function here takes arrays of shape (..., n) with tension u of shape (...) and dispatches on n.
+
+The paper prints ``beta tan(beta)`` in the theta equation of the 3-D model; the dimensionally
+consistent term (Williams 2008) is ``beta' tan(beta)``, which is what is implemented.
+"""
+
+import numpy as np
+
+THETA, THETA_RATE, LENGTH_OFFSET, LENGTH_RATE, BETA, BETA_RATE = range(6)
+PLANAR_DIM = 4
+SPATIAL_DIM = 6
+STATE_NAMES = ('theta', 'theta_rate', 'length_offset', 'length_rate', 'beta', 'beta_rate')
+
+#: The deployed equilibrium x = 0 is held by the tension u = 3 (paper, Section II-A).
+EQUILIBRIUM_TENSION = 3.0
+#: The paper's sample period in tau (Section IV): one RK4 step of the learned model.
+PAPER_STEP = 0.01
+#: The paper's initial deployment state (Section IV-D): l = 0.01, l' = 0.5.
+PAPER_INITIAL_STATE = np.array([0.0, 0.0, -0.99, 0.5])
+
+
+def equilibrium_state(dim=PLANAR_DIM):
+    """Return the deployed equilibrium (tether fully out, aligned with the local vertical)."""
+    check_state_dim(dim)
+    return np.zeros(dim)
+
+
+def derivative(x, u):
+    """Return dx/dtau for states x (..., 4 or 6) under tension u (...)."""
+    x = np.asarray(x, dtype=float)
+    u = np.asarray(u, dtype=float)
+    check_state_dim(x.shape[-1])
+    theta, w, v = x[..., THETA], x[..., THETA_RATE] + 1.0, x[..., LENGTH_RATE]
+    length = x[..., LENGTH_OFFSET] + 1.0
+    sin_t, cos_t = np.sin(theta), np.cos(theta)
+    stretch = v / length
+    if x.shape[-1] == PLANAR_DIM:
+        theta_acc = -2.0 * stretch * w - 3.0 * sin_t * cos_t
+        length_acc = length * (w * w + 3.0 * cos_t * cos_t - 1.0) - u
+        return np.stack([x[..., THETA_RATE], theta_acc, v, length_acc], axis=-1)
+    beta, beta_rate = x[..., BETA], x[..., BETA_RATE]
+    sin_b, cos_b = np.sin(beta), np.cos(beta)
+    theta_acc = 2.0 * w * (beta_rate * sin_b / cos_b - stretch) - 3.0 * sin_t * cos_t
+    beta_acc = -2.0 * stretch * beta_rate - (w * w + 3.0 * cos_t * cos_t) * sin_b * cos_b
+    length_acc = length * (beta_rate ** 2 + (w * w + 3.0 * cos_t * cos_t) * cos_b * cos_b
+                           - 1.0) - u
+    return np.stack([x[..., THETA_RATE], theta_acc, v, length_acc, beta_rate, beta_acc], axis=-1)
+
+
+def rk4_step(x, u, h=PAPER_STEP, substeps=1):
+    """Advance x by one sample period h with u held constant, using `substeps` RK4 steps.
+
+    The paper samples with one RK4 step of h = 0.01. Near l -> 0 with large l' that single step
+    is inaccurate (see ../shared/TSR_PHYSICS.md); the simulator uses substeps for the plant.
+    """
+    x = np.asarray(x, dtype=float)
+    u = np.asarray(u, dtype=float)
+    dt = h / substeps
+    for _ in range(substeps):
+        k1 = derivative(x, u)
+        k2 = derivative(x + 0.5 * dt * k1, u)
+        k3 = derivative(x + 0.5 * dt * k2, u)
+        k4 = derivative(x + dt * k3, u)
+        x = x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return x
+
+
+def rollout(x0, u_sequence, h=PAPER_STEP, substeps=1):
+    """Simulate a batch: x0 (B, n) and u_sequence (B, T) give states (B, T + 1, n).
+
+    A trajectory that leaves the domain turns non-finite from there on; use `in_domain`.
+    """
+    x0 = np.atleast_2d(np.asarray(x0, dtype=float))
+    u_sequence = np.atleast_2d(np.asarray(u_sequence, dtype=float))
+    if u_sequence.shape[0] != x0.shape[0]:
+        raise ValueError(f'batch sizes differ: x0 has {x0.shape[0]}, u has {u_sequence.shape[0]}')
+    states = np.empty((x0.shape[0], u_sequence.shape[1] + 1, x0.shape[1]))
+    states[:, 0] = x0
+    with np.errstate(all='ignore'):
+        for k in range(u_sequence.shape[1]):
+            states[:, k + 1] = rk4_step(states[:, k], u_sequence[:, k], h, substeps)
+    return states
+
+
+def in_domain(x):
+    """True where the state is inside the model's domain: finite and tether length l > 0."""
+    x = np.asarray(x, dtype=float)
+    with np.errstate(invalid='ignore'):
+        return np.all(np.isfinite(x), axis=-1) & (x[..., LENGTH_OFFSET] > -1.0)
+
+
+def linearise(x=None, u=EQUILIBRIUM_TENSION):
+    """Return the Jacobians (A, B) of the planar model at (x, u): dx' = A dx + B du.
+
+    At the equilibrium A = [[0,1,0,0],[-3,0,0,-2],[0,0,0,1],[0,2,3,0]], B = [0,0,0,-1]^T.
+    """
+    x = equilibrium_state() if x is None else np.asarray(x, dtype=float)
+    if x.shape != (PLANAR_DIM,):
+        raise ValueError(f'linearise takes one planar state of shape (4,), got {x.shape}')
+    theta, w, x3, v = x[THETA], x[THETA_RATE] + 1.0, x[LENGTH_OFFSET], x[LENGTH_RATE]
+    length = x3 + 1.0
+    a = np.zeros((PLANAR_DIM, PLANAR_DIM))
+    a[THETA, THETA_RATE] = 1.0
+    a[THETA_RATE] = [-3.0 * np.cos(2.0 * theta), -2.0 * v / length,
+                     2.0 * v * w / length ** 2, -2.0 * w / length]
+    a[LENGTH_OFFSET, LENGTH_RATE] = 1.0
+    a[LENGTH_RATE] = [-3.0 * length * np.sin(2.0 * theta), 2.0 * length * w,
+                      w * w + 3.0 * np.cos(theta) ** 2 - 1.0, 0.0]
+    b = np.zeros((PLANAR_DIM, 1))
+    b[LENGTH_RATE, 0] = -1.0
+    return a, b
+
+
+def check_state_dim(dim):
+    if dim not in (PLANAR_DIM, SPATIAL_DIM):
+        raise ValueError(f'a TSR state has {PLANAR_DIM} (planar) or {SPATIAL_DIM} (3-D) '
+                         f'components, got {dim}')

@@ -1,0 +1,66 @@
+"""ROS glue shared by the nodes: topic names, QoS, parameter declaration, message <-> array.
+
+Kept apart from the ROS-free core (dynamics, units, plant) so that the core imports without rclpy.
+"""
+
+import numpy as np
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from tsr_msgs.msg import TensionCommand, TsrState
+
+from tsr_sim.dynamics import BETA, BETA_RATE, PLANAR_DIM, SPATIAL_DIM
+
+STATE_TOPIC = 'tsr/state'
+TENSION_TOPIC = 'tsr/tension_cmd'
+STATUS_TOPIC = 'tsr/sim_status'
+RESET_SERVICE = 'tsr/reset'
+
+#: State and command: reliable, so lockstep never loses a step; shallow, so no backlog builds.
+LOOP_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                      history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+#: Status: a late joiner gets the last one.
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         history=HistoryPolicy.KEEP_LAST,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def declare(node, name, default, description, low=None, high=None, step=None):
+    """Declare a parameter with a descriptor (and a range for numbers); return its value."""
+    descriptor = ParameterDescriptor(description=description)
+    if low is not None:
+        if isinstance(default, int) and not isinstance(default, bool):
+            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
+                                                     step=int(step or 1))]
+        else:
+            descriptor.floating_point_range = [FloatingPointRange(
+                from_value=float(low), to_value=float(high), step=float(step or 0.0))]
+    return node.declare_parameter(name, default, descriptor).value
+
+
+def state_to_msg(si_state, step, stamp):
+    """SI state array (layout of tsr_sim.units.Scale.state_to_si) -> TsrState."""
+    msg = TsrState()
+    msg.header.stamp = stamp
+    msg.step = int(step)
+    msg.theta, msg.theta_rate, msg.length, msg.length_rate = (float(v) for v in si_state[:4])
+    if si_state.shape[-1] == SPATIAL_DIM:
+        msg.has_out_of_plane = True
+        msg.beta, msg.beta_rate = float(si_state[BETA]), float(si_state[BETA_RATE])
+    return msg
+
+
+def msg_to_state(msg, dim=PLANAR_DIM):
+    """TsrState -> SI state array with `dim` components."""
+    values = [msg.theta, msg.theta_rate, msg.length, msg.length_rate]
+    if dim == SPATIAL_DIM:
+        values += [msg.beta, msg.beta_rate]
+    return np.array(values, dtype=float)
+
+
+def tension_msg(tension, step, stamp):
+    msg = TensionCommand()
+    msg.header.stamp = stamp
+    msg.step = int(step)
+    msg.tension = float(tension)
+    return msg
+

