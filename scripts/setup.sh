@@ -59,4 +59,7 @@ build_workspace
 set +u
 # shellcheck disable=SC1091
 source "$WS/install/setup.bash"
+# The venv is the ROS underlay (what /opt/ros/jazzy is on a stock install): the ament index must
+# see it so share/<pkg>/msg files (bag schemas, type hashes) resolve for std_msgs and friends.
+export AMENT_PREFIX_PATH="$AMENT_PREFIX_PATH:$VENV"
 export PATH="$VENV/bin:$PATH"

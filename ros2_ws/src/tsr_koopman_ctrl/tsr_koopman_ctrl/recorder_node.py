@@ -1,0 +1,112 @@
+"""Recorder node: raw CDR subscriptions written as they arrive into a rosbag2-layout MCAP bag.
+
+Topics are subscribed once a publisher shows their type; the subscription is reliable and
+keeps all messages (nothing dropped on a burst), transient local where every publisher is.
+SIGINT and SIGTERM close the bag cleanly; the bag format itself is in tsr_koopman_ctrl.bag.
+"""
+
+import datetime
+import importlib
+import os
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from tsr_sim.ros_io import declare
+
+from tsr_koopman_ctrl import bag
+
+DEFAULT_TOPICS = ['/tsr/state', '/tsr/tension_cmd', '/tsr/sim_status', '/clock']
+
+
+def message_class(type_name):
+    """'pkg/msg/Type' -> the generated Python class."""
+    package, kind, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{package}.{kind}'), name)
+
+
+def offered_qos(endpoint):
+    q = endpoint.qos_profile
+    return bag.qos_dict(q.history, q.depth, q.reliability, q.durability, q.liveliness,
+                        q.deadline.nanoseconds, q.lifespan.nanoseconds,
+                        q.liveliness_lease_duration.nanoseconds,
+                        q.avoid_ros_namespace_conventions)
+
+
+class RecorderNode(Node):
+
+    def __init__(self):
+        super().__init__('tsr_recorder')
+        self.wanted = declare(self, 'topics', DEFAULT_TOPICS, 'topics to record')
+        directory = declare(self, 'output_dir', 'bags', 'directory the bag is created in')
+        name = declare(self, 'bag_name', '', 'bag directory name (empty: tsr_<UTC time>)')
+        name = name or datetime.datetime.now(datetime.timezone.utc).strftime('tsr_%Y%m%d_%H%M%S')
+        self.writer = bag.BagWriter(
+            os.path.join(directory, name),
+            max_file_bytes=declare(self, 'max_file_size', 0,
+                                   'split after this many bytes (0: never)', 0, 2 ** 62),
+            max_file_seconds=declare(self, 'max_file_duration', 0.0,
+                                     'split after this many seconds (0: never)', 0.0, 1e9),
+            chunk_size=declare(self, 'chunk_size', 1 << 20,
+                               'MCAP chunk size in bytes: bounds what a crash can lose',
+                               256, 1 << 30))
+        self.subscribed = {}
+        self.create_timer(declare(self, 'discovery_period', 0.2,
+                                  'seconds between looks for new topics', 0.01, 60.0),
+                          self.discover)
+        self.get_logger().info(f'recording {self.wanted} into {self.writer.directory}')
+        self.discover()
+
+    def discover(self):
+        types = dict(self.get_topic_names_and_types())
+        for topic in self.wanted:
+            if topic in self.subscribed or topic not in types:
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue
+            self.subscribe(topic, types[topic][0], publishers)
+
+    def subscribe(self, topic, type_name, publishers):
+        qos = [offered_qos(p) for p in publishers]
+        self.writer.add_topic(bag.TopicInfo(
+            name=topic, type=type_name, definition=bag.message_definition(type_name),
+            type_hash=bag.type_hash(type_name), offered_qos=qos))
+        latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                      for p in publishers)
+        profile = QoSProfile(
+            history=HistoryPolicy.KEEP_ALL, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+        if any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for p in publishers):
+            profile.reliability = ReliabilityPolicy.BEST_EFFORT
+        self.subscribed[topic] = self.create_subscription(
+            message_class(type_name), topic,
+            lambda data, t=topic: self.writer.write(t, data, self.get_clock().now().nanoseconds),
+            profile, raw=True)
+        self.get_logger().info(f'recording {topic} [{type_name}]')
+
+    def close(self):
+        self.writer.close()
+        counts = ', '.join(f'{t}: {n}' for t, n in self.writer.topic_counts.items())
+        print(f'[tsr_recorder] bag {self.writer.directory} closed: '
+              f'{self.writer.message_count} messages ({counts})', flush=True)
+
+
+def main(args=None):
+    node = None
+    try:
+        rclpy.init(args=args)
+        node = RecorderNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
