@@ -23,6 +23,7 @@ setup(
         'console_scripts': [
             'controller_node = tsr_koopman_ctrl.controller_node:main',
             'recorder_node = tsr_koopman_ctrl.recorder_node:main',
+            'deploy = tsr_koopman_ctrl.deploy:main',
         ],
     },
 )

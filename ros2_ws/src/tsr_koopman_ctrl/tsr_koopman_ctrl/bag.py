@@ -351,8 +351,8 @@ class BagReader:
                         channels[record.id] = record
                     elif isinstance(record, Message):
                         channel = channels[record.channel_id]
+                        report.messages += 1
                         if topics is None or channel.topic in topics:
-                            report.messages += 1
                             yield BagMessage(channel.topic, schemas[channel.schema_id].name,
                                              record.log_time, record.data)
                     elif isinstance(record, (DataEnd, Footer)):
@@ -370,3 +370,37 @@ def _bag_files(path):
     index = re.compile(r'_(\d+)\.mcap$')
     names.sort(key=lambda n: (int(index.search(n).group(1)) if index.search(n) else -1, n))
     return [os.path.join(path, n) for n in names]
+
+
+# ---------------------------------------------------------------------------------------------
+# The deployment loop's topics (tsr_msgs) as arrays
+
+STATE_TOPIC = '/tsr/state'
+TENSION_TOPIC = '/tsr/tension_cmd'
+
+
+def read_loop(path, scale):
+    """Read the loop of a bag: {'step', 'tau', 'x' (dimensionless), 'u' (per step, nan where
+    no command), 'report'}. Republished states count once; the first command per step is the
+    one a lockstep simulator applies."""
+    import numpy as np
+    from tsr_sim.dynamics import PLANAR_DIM, SPATIAL_DIM
+    reader = BagReader(path)
+    states, tensions = {}, {}
+    for msg, decoded in reader.decoded({STATE_TOPIC, TENSION_TOPIC}):
+        if msg.topic == STATE_TOPIC:
+            si = [decoded.theta, decoded.theta_rate, decoded.length, decoded.length_rate]
+            if decoded.has_out_of_plane:
+                si += [decoded.beta, decoded.beta_rate]
+            stamp = decoded.header.stamp.sec + decoded.header.stamp.nanosec * 1e-9
+            states[decoded.step] = (stamp, si)
+        else:
+            tensions.setdefault(decoded.step, decoded.tension)
+    if not states:
+        raise ValueError(f'bag {path} has no {STATE_TOPIC} messages')
+    steps = np.array(sorted(states))
+    dim = SPATIAL_DIM if any(len(states[s][1]) == SPATIAL_DIM for s in steps) else PLANAR_DIM
+    x = scale.state_from_si(np.array([states[s][1][:dim] for s in steps]))
+    tau = np.array([scale.seconds_to_tau(states[s][0]) for s in steps])
+    u = np.array([scale.tension_to_u(tensions.get(s, np.nan)) for s in steps])
+    return {'step': steps, 'tau': tau, 'x': x, 'u': u, 'report': reader.report}

@@ -43,7 +43,7 @@ class NodeProcess:
         env = dict(os.environ)
         if domain_id is not None:
             env['ROS_DOMAIN_ID'] = str(domain_id)
-        self._log = open(log_path, 'w') if log_path else subprocess.DEVNULL
+        self._log = open(log_path, 'w') if log_path else None   # None: this console
         self.process = subprocess.Popen(cmd, env=env, stdout=self._log,
                                         stderr=subprocess.STDOUT)
 
@@ -67,7 +67,7 @@ class NodeProcess:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
-        if self._log is not subprocess.DEVNULL:
+        if self._log is not None:
             self._log.close()
         self._tmp.cleanup()
         return self.process.returncode

@@ -18,6 +18,8 @@ from tsr_sim.ros_io import declare
 from tsr_koopman_ctrl import bag
 
 DEFAULT_TOPICS = ['/tsr/state', '/tsr/tension_cmd', '/tsr/sim_status', '/clock']
+DEFAULT_TYPES = ['tsr_msgs/msg/TsrState', 'tsr_msgs/msg/TensionCommand',
+                 'tsr_msgs/msg/SimStatus', 'rosgraph_msgs/msg/Clock']
 
 
 def message_class(type_name):
@@ -39,6 +41,9 @@ class RecorderNode(Node):
     def __init__(self):
         super().__init__('tsr_recorder')
         self.wanted = declare(self, 'topics', DEFAULT_TOPICS, 'topics to record')
+        types = declare(self, 'types', DEFAULT_TYPES if self.wanted == DEFAULT_TOPICS else [''],
+                        'message type of each topic (pkg/msg/Type), subscribed at start so '
+                        "nothing is missed; '' or a shorter list: discovered from publishers")
         directory = declare(self, 'output_dir', 'bags', 'directory the bag is created in')
         name = declare(self, 'bag_name', '', 'bag directory name (empty: tsr_<UTC time>)')
         name = name or datetime.datetime.now(datetime.timezone.utc).strftime('tsr_%Y%m%d_%H%M%S')
@@ -56,6 +61,9 @@ class RecorderNode(Node):
                                   'seconds between looks for new topics', 0.01, 60.0),
                           self.discover)
         self.get_logger().info(f'recording {self.wanted} into {self.writer.directory}')
+        for topic, type_name in zip(self.wanted, types):
+            if type_name:
+                self.subscribe(topic, type_name, publishers=[])
         self.discover()
 
     def discover(self):
@@ -69,11 +77,12 @@ class RecorderNode(Node):
             self.subscribe(topic, types[topic][0], publishers)
 
     def subscribe(self, topic, type_name, publishers):
+        """Subscribe raw; with no publisher known yet: reliable, volatile (matches any)."""
         qos = [offered_qos(p) for p in publishers]
         self.writer.add_topic(bag.TopicInfo(
             name=topic, type=type_name, definition=bag.message_definition(type_name),
             type_hash=bag.type_hash(type_name), offered_qos=qos))
-        latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        latched = publishers and all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
                       for p in publishers)
         profile = QoSProfile(
             history=HistoryPolicy.KEEP_ALL, depth=1000, reliability=ReliabilityPolicy.RELIABLE,

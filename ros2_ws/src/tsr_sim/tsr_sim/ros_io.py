@@ -9,6 +9,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from tsr_msgs.msg import TensionCommand, TsrState
 
 from tsr_sim.dynamics import BETA, BETA_RATE, PLANAR_DIM, SPATIAL_DIM
+from tsr_sim.units import DEFAULT_MASS, PAPER_ORBIT_RATE, PAPER_TETHER_LENGTH, Scale
 
 STATE_TOPIC = 'tsr/state'
 TENSION_TOPIC = 'tsr/tension_cmd'
@@ -35,6 +36,15 @@ def declare(node, name, default, description, low=None, high=None, step=None):
             descriptor.floating_point_range = [FloatingPointRange(
                 from_value=float(low), to_value=float(high), step=float(step or 0.0))]
     return node.declare_parameter(name, default, descriptor).value
+
+
+def declare_scale(node):
+    """Declare orbit_rate, tether_length and mass (every node converting units needs them)."""
+    return Scale(
+        orbit_rate=declare(node, 'orbit_rate', PAPER_ORBIT_RATE, 'Omega [rad/s]', 1e-9, 1.0),
+        tether_length=declare(node, 'tether_length', PAPER_TETHER_LENGTH,
+                              'full tether length L [m]', 1e-3, 1e9),
+        mass=declare(node, 'mass', DEFAULT_MASS, 'robot mass m [kg]', 1e-6, 1e9))
 
 
 def state_to_msg(si_state, step, stamp):

@@ -24,9 +24,8 @@ from tsr_msgs.srv import ResetSim
 
 from tsr_sim import dynamics
 from tsr_sim.plant import Plant, PlantConfig, Status
-from tsr_sim.ros_io import (declare, LATCHED_QOS, LOOP_QOS, RESET_SERVICE,
+from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_QOS, RESET_SERVICE,
                             state_to_msg, STATE_TOPIC, STATUS_TOPIC, TENSION_TOPIC)
-from tsr_sim.units import DEFAULT_MASS, PAPER_ORBIT_RATE, PAPER_TETHER_LENGTH, Scale
 
 
 class SimNode(Node):
@@ -50,6 +49,9 @@ class SimNode(Node):
             'state is published again', 0.01, 60.0)
         self.progress_every = declare(self, 'progress_every', 100,
                                       'log a progress line every N steps (0: never)', 0, 10**9)
+        self.wait_for_subscribers = declare(
+            self, 'wait_for_subscribers', 0, 'lockstep: publish no state until the state topic '
+            'has this many subscribers (controller, recorder)', 0, 1000)
         self.exit_on_finish = declare(self, 'exit_on_finish', False,
                                       'shut the node down when max_steps is reached')
 
@@ -80,11 +82,7 @@ class SimNode(Node):
         self.publish_status()
 
     def _plant_config(self):
-        scale = Scale(
-            orbit_rate=declare(self, 'orbit_rate', PAPER_ORBIT_RATE, 'Omega [rad/s]', 1e-9, 1.0),
-            tether_length=declare(self, 'tether_length', PAPER_TETHER_LENGTH,
-                                  'full tether length L [m]', 1e-3, 1e9),
-            mass=declare(self, 'mass', DEFAULT_MASS, 'robot mass m [kg]', 1e-6, 1e9))
+        scale = declare_scale(self)
         return PlantConfig(
             initial_state=declare(
                 self, 'initial_state', dynamics.PAPER_INITIAL_STATE.tolist(),
@@ -139,12 +137,18 @@ class SimNode(Node):
         self.step(self.held_tension)
 
     def on_idle_check(self):
-        if self.plant.status is Status.RUNNING and \
-                time.monotonic() - self.last_command_wall > self.republish_period:
+        """Lockstep side of a command timeout: warn and publish the state again."""
+        if self.plant.status is not Status.RUNNING or \
+                time.monotonic() - self.last_command_wall < self.republish_period:
+            return
+        if self.loop_wired():
             self.get_logger().warning(
                 f'lockstep: waiting for a tension command for step {self.plant.step_index}',
                 throttle_duration_sec=10.0)
-            self.publish_state()
+        self.publish_state()
+
+    def loop_wired(self):
+        return self.state_pub.get_subscription_count() >= self.wait_for_subscribers
 
     def step(self, tension):
         self.plant.advance(tension)
@@ -168,6 +172,11 @@ class SimNode(Node):
         return Time(seconds=self.scale.tau_to_seconds(self.plant.tau)).to_msg()
 
     def publish_state(self):
+        if self.mode == 'lockstep' and not self.loop_wired():
+            self.get_logger().info(
+                f'waiting for {self.wait_for_subscribers} subscribers to {STATE_TOPIC}',
+                throttle_duration_sec=5.0)
+            return
         stamp = self.sim_stamp()
         self.clock_pub.publish(Clock(clock=stamp))
         si = self.scale.state_to_si(self.plant.measure())
