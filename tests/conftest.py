@@ -7,7 +7,6 @@ import time
 import pytest
 
 
-
 @pytest.fixture(scope='session')
 def domain_id():
     """A DDS domain of our own, so parallel runs and other ROS graphs do not interfere."""

@@ -21,8 +21,9 @@ QOS = [bag.qos_dict(1, 10, 1, 2, 1, None, None, None)]
 
 def string_topic(name='/chatter'):
     # Definition and hash from the installed std_msgs: rosbags recomputes and checks the hash.
-    return bag.TopicInfo(name, 'std_msgs/msg/String', bag.message_definition('std_msgs/msg/String'),
-                         bag.type_hash('std_msgs/msg/String'), QOS)
+    type_name = 'std_msgs/msg/String'
+    return bag.TopicInfo(name, type_name, bag.message_definition(type_name),
+                         bag.type_hash(type_name), QOS)
 
 
 def cdr_string(text):
@@ -69,8 +70,8 @@ def test_split_by_size_keeps_every_message_in_order(tmp_path):
     writer = write_strings(tmp_path / 'b', 3000, max_file_bytes=8_000, chunk_size=2_000)
     assert len(writer.files) > 2
     reader = bag.BagReader(str(tmp_path / 'b'))
-    assert [m.log_time_ns for m in reader.messages()] == [1_000_000 * (i + 1)
-                                                           for i in range(3000)]
+    times = [m.log_time_ns for m in reader.messages()]
+    assert times == [1_000_000 * (i + 1) for i in range(3000)]
     with AnyReader([tmp_path / 'b'], default_typestore=TYPESTORE) as other:
         assert sum(1 for _ in other.messages()) == 3000
 

@@ -33,7 +33,8 @@ class LinearisedLqr:
         pass
 
     def compute(self, x):
-        return dynamics.EQUILIBRIUM_TENSION - float(self.gain @ np.asarray(x)[:dynamics.PLANAR_DIM])
+        planar = np.asarray(x)[:dynamics.PLANAR_DIM]
+        return dynamics.EQUILIBRIUM_TENSION - float(self.gain @ planar)
 
 
 CONTROLLERS = {LinearisedLqr.name: LinearisedLqr}

@@ -13,6 +13,7 @@ import json
 import os
 import random
 import sys
+import time
 
 from tsr_sim import dynamics
 from tsr_sim.units import Scale
@@ -45,6 +46,8 @@ def run(args):
     name = f'deploy_{args.controller}_' + \
         datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%d_%H%M%S')
     run_dir = os.path.join(args.out, name)
+    if os.path.abspath(args.out) == os.path.abspath(args.bags):
+        raise ValueError('--out and --bags must differ: a bag directory holds only the bag')
     os.makedirs(run_dir, exist_ok=True)
     domain = args.domain if args.domain is not None else random.randint(120, 219)
     scale = Scale()
@@ -64,13 +67,25 @@ def run(args):
                  'max_steps': args.steps, 'exit_on_finish': True, 'wait_for_subscribers': 2,
                  'progress_every': 100}, console=True)
     try:
-        sim.wait(args.timeout)
+        watch(sim, (controller, recorder), args.timeout, run_dir)
     except KeyboardInterrupt:
         print('[deploy] interrupted: closing the bag', flush=True)
     finally:
         for proc in (sim, controller, recorder):
             proc.stop()
     return run_dir, os.path.join(args.bags, name), scale
+
+
+def watch(sim, others, timeout, run_dir):
+    """Wait for the simulator to finish; fail early if another node dies or time runs out."""
+    deadline = time.monotonic() + timeout
+    while sim.running():
+        dead = [p.name for p in others if not p.running()]
+        if dead:
+            raise RuntimeError(f'{", ".join(dead)} exited early: see the logs in {run_dir}')
+        if time.monotonic() > deadline:
+            raise TimeoutError(f'the deployment did not finish within {timeout} s')
+        time.sleep(0.1)
 
 
 def report(run_dir, bag_path, scale, controller):
@@ -98,15 +113,19 @@ def summary_table(summaries):
             'max u | integral u dtau |', '|---|---|---|---|---|---|']
     for s in summaries:
         rows.append(f"| {s['controller']} | {fmt(s['settle_tau'])} | "
-                     f"[{s['theta_min']:.3f}, {s['theta_max']:.3f}] | "
-                     f"{s['length_overshoot']:.4f} | {s['tension_max']:.3f} | "
-                     f"{s['tension_integral']:.2f} |")
+                    f"[{s['theta_min']:.3f}, {s['theta_max']:.3f}] | "
+                    f"{s['length_overshoot']:.4f} | {s['tension_max']:.3f} | "
+                    f"{s['tension_integral']:.2f} |")
     return '\n'.join(rows)
 
 
 def main(argv=None):
     args = parse_args(argv)
-    run_dir, bag_path, scale = run(args)
+    try:
+        run_dir, bag_path, scale = run(args)
+    except (ValueError, RuntimeError, TimeoutError) as err:
+        print(f'[deploy] failed: {err}', file=sys.stderr)
+        return 1
     summary = report(run_dir, bag_path, scale, args.controller)
     if summary['steps'] < args.steps:
         print(f'[deploy] the simulator stopped at step {summary["steps"]} of {args.steps}',

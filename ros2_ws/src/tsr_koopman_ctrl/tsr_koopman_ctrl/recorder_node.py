@@ -82,8 +82,8 @@ class RecorderNode(Node):
         self.writer.add_topic(bag.TopicInfo(
             name=topic, type=type_name, definition=bag.message_definition(type_name),
             type_hash=bag.type_hash(type_name), offered_qos=qos))
-        latched = publishers and all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                      for p in publishers)
+        latched = bool(publishers) and all(
+            p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
         profile = QoSProfile(
             history=HistoryPolicy.KEEP_ALL, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)

@@ -73,4 +73,3 @@ def tension_msg(tension, step, stamp):
     msg.step = int(step)
     msg.tension = float(tension)
     return msg
-
