@@ -13,13 +13,11 @@ import numpy as np
 from scipy.integrate import solve_ivp
 from tsr_sim import dynamics
 
-LOW = np.array([-2.5, -1.0, -0.99, 0.0])
-HIGH = np.array([0.5, 1.0, 0.0, 2.0])
-
 
 def sample(n, steps, seed=0):
     rng = np.random.default_rng(seed)
-    return rng.uniform(LOW, HIGH, (n, 4)), rng.uniform(0.0, 5.0, (n, steps))
+    return (rng.uniform(dynamics.TABLE1_STATE_LOW, dynamics.TABLE1_STATE_HIGH, (n, 4)),
+            rng.uniform(*dynamics.TABLE1_TENSION_RANGE, (n, steps)))
 
 
 def solve_ivp_loop(x0, u):

@@ -2,8 +2,7 @@
 # Idempotent set-up: venv with pinned wheels, the ROS-wheel fix, colcon build of ros2_ws.
 # Each step runs only when its inputs changed (stamps under .venv/ and ros2_ws/install/).
 # Source it (scripts that need the workspace do) or run it; it leaves the environment ready:
-# ROS from .venv, the workspace overlay sourced.
-set -eo pipefail
+# ROS from .venv, the workspace overlay sourced. It leaves the caller's shell options alone.
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="$REPO/.venv"
 WS="$REPO/ros2_ws"
@@ -53,10 +52,10 @@ build_workspace() {
   echo "$want" > "$WS/install/.tsr-built"
 }
 
-install_venv
-build_workspace
-# setup.bash of an overlay reads unset variables: relax -u while sourcing.
-set +u
+if ! (set -eo pipefail; install_venv; build_workspace); then
+  say "set-up failed"
+  return 1 2>/dev/null || exit 1
+fi
 # shellcheck disable=SC1091
 source "$WS/install/setup.bash"
 # The venv is the ROS underlay (what /opt/ros/jazzy is on a stock install): the ament index must

@@ -6,9 +6,7 @@ from scipy.integrate import solve_ivp
 
 from tsr_sim import dynamics
 
-# Table 1 of the paper: initial-state ranges and the input range.
-LOW = np.array([-2.5, -1.0, -0.99, 0.0])
-HIGH = np.array([0.5, 1.0, 0.0, 2.0])
+LOW, HIGH = dynamics.TABLE1_STATE_LOW, dynamics.TABLE1_STATE_HIGH
 
 
 def reference_rhs(t, x, u):

@@ -11,12 +11,10 @@ import sys
 import time
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from tsr_msgs.msg import TensionCommand, TsrState
-from tsr_sim.ros_io import (declare, declare_scale, LOOP_QOS, msg_to_state, STATE_TOPIC,
-                            TENSION_TOPIC, tension_msg)
+from tsr_sim.ros_io import (declare, declare_scale, LOOP_QOS, msg_to_state, run_node,
+                            STATE_TOPIC, TENSION_TOPIC, tension_msg)
 
 from tsr_koopman_ctrl.controllers import CONTROLLERS, make_controller, TensionLimiter
 
@@ -72,22 +70,8 @@ class ControllerNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    try:
-        node = ControllerNode()
-    except ValueError as err:      # bad parameters: one clear line, not a traceback
-        print(f'[tsr_controller] cannot start: {err}', file=sys.stderr, flush=True)
-        rclpy.try_shutdown()
-        sys.exit(2)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.report()
-        node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node(ControllerNode, on_exit=ControllerNode.report, args=args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

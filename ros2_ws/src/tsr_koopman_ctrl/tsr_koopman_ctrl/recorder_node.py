@@ -8,12 +8,11 @@ SIGINT and SIGTERM close the bag cleanly; the bag format itself is in tsr_koopma
 import datetime
 import importlib
 import os
+import sys
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from tsr_sim.ros_io import declare
+from tsr_sim.ros_io import declare, run_node
 
 from tsr_koopman_ctrl import bag
 
@@ -67,6 +66,8 @@ class RecorderNode(Node):
         self.discover()
 
     def discover(self):
+        if len(self.subscribed) == len(self.wanted):
+            return
         types = dict(self.get_topic_names_and_types())
         for topic in self.wanted:
             if topic in self.subscribed or topic not in types:
@@ -103,19 +104,8 @@ class RecorderNode(Node):
 
 
 def main(args=None):
-    node = None
-    try:
-        rclpy.init(args=args)
-        node = RecorderNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node(RecorderNode, on_exit=RecorderNode.close, args=args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -29,6 +29,10 @@ EQUILIBRIUM_TENSION = 3.0
 PAPER_STEP = 0.01
 #: The paper's initial deployment state (Section IV-D): l = 0.01, l' = 0.5.
 PAPER_INITIAL_STATE = np.array([0.0, 0.0, -0.99, 0.5])
+#: Table 1 of the paper: ranges of the sampled initial states and of the random tension.
+TABLE1_STATE_LOW = np.array([-2.5, -1.0, -0.99, 0.0])
+TABLE1_STATE_HIGH = np.array([0.5, 1.0, 0.0, 2.0])
+TABLE1_TENSION_RANGE = (0.0, 5.0)
 
 
 def equilibrium_state(dim=PLANAR_DIM):

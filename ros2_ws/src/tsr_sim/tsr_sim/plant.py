@@ -105,15 +105,21 @@ class Plant:
             return Rejection.STALE
         return None
 
+    def accept(self, tension, step=None):
+        """Check a command and count it as accepted or rejected; return the Rejection or None."""
+        rejection = self.check_command(tension, step)
+        if rejection is None:
+            self.accepted += 1
+        else:
+            self.counters[rejection] += 1
+        return rejection
+
     def submit(self, tension, step=None):
         """Apply a command if valid and advance one step; return the Rejection or None."""
-        rejection = self.check_command(tension, step)
-        if rejection is not None:
-            self.counters[rejection] += 1
-            return rejection
-        self.accepted += 1
-        self.advance(tension)
-        return None
+        rejection = self.accept(tension, step)
+        if rejection is None:
+            self.advance(tension)
+        return rejection
 
     def advance(self, tension):
         """Advance one sample period under `tension` [N], already checked by the caller."""

@@ -3,8 +3,13 @@
 Kept apart from the ROS-free core (dynamics, units, plant) so that the core imports without rclpy.
 """
 
+import sys
+
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+import rclpy
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tsr_msgs.msg import TensionCommand, TsrState
 
@@ -73,3 +78,29 @@ def tension_msg(tension, step, stamp):
     msg.step = int(step)
     msg.tension = float(tension)
     return msg
+
+
+def run_node(make_node, on_exit=None, args=None):
+    """Jazzy node life cycle: init, spin until SIGINT/SIGTERM (or SystemExit from a callback),
+    then `on_exit(node)` and clean-up. A ValueError while constructing (bad parameters, bad
+    model) is one clear line on stderr and exit code 2, not a traceback."""
+    rclpy.init(args=args)
+    try:
+        node = make_node()
+    except ValueError as err:
+        print(f'cannot start: {err}', file=sys.stderr, flush=True)
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
+        pass
+    except RCLError:
+        if rclpy.ok():     # a callback racing the signal's shutdown is a shutdown; else a bug
+            raise
+    finally:
+        if on_exit is not None:
+            on_exit(node)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

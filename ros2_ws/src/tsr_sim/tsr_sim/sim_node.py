@@ -11,11 +11,10 @@ Modes:
 All maths and command checks are in tsr_sim.plant (ROS-free); this file converts and schedules.
 """
 
+import sys
 import time
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
@@ -24,7 +23,7 @@ from tsr_msgs.srv import ResetSim
 
 from tsr_sim import dynamics
 from tsr_sim.plant import Plant, PlantConfig, Status
-from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_QOS, RESET_SERVICE,
+from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_QOS, RESET_SERVICE, run_node,
                             state_to_msg, STATE_TOPIC, STATUS_TOPIC, TENSION_TOPIC)
 
 
@@ -108,9 +107,8 @@ class SimNode(Node):
         if self.plant.status is not Status.RUNNING:
             return
         step = msg.step if self.mode == 'lockstep' else None
-        rejection = self.plant.check_command(msg.tension, step)
+        rejection = self.plant.accept(msg.tension, step)
         if rejection is not None:
-            self.plant.counters[rejection] += 1
             self.get_logger().warning(
                 f'rejected tension command {msg.tension!r} N for step {msg.step} '
                 f'(at step {self.plant.step_index}): {rejection.value}; '
@@ -118,7 +116,6 @@ class SimNode(Node):
                 throttle_duration_sec=1.0)
             self.publish_status()
             return
-        self.plant.accepted += 1
         self.last_command_wall = time.monotonic()
         if self.mode == 'lockstep':
             self.step(msg.tension)
@@ -211,18 +208,8 @@ class SimNode(Node):
 
 
 def main(args=None):
-    node = None
-    try:
-        rclpy.init(args=args)
-        node = SimNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return run_node(SimNode, args=args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
