@@ -23,3 +23,13 @@ def test_sim_example_params_run_a_lockstep_simulator(ros, domain_id, tmp_path):
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_bad_parameters_fail_at_start_with_one_line(domain_id):
+    import subprocess
+    for args in (['-p', 'mode:=bogus'], ['-p', 'substeps:=0'], ['-p', 'step:=fast']):
+        result = subprocess.run([executable('tsr_sim', 'sim_node'), '--ros-args', *args],
+                                env=dict(os.environ, ROS_DOMAIN_ID=str(domain_id)),
+                                capture_output=True, text=True, timeout=30)
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.startswith('cannot start:') and 'Traceback' not in result.stderr

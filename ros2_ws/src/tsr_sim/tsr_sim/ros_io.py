@@ -9,6 +9,7 @@ import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tsr_msgs.msg import TensionCommand, TsrState
@@ -82,12 +83,12 @@ def tension_msg(tension, step, stamp):
 
 def run_node(make_node, on_exit=None, args=None):
     """Jazzy node life cycle: init, spin until SIGINT/SIGTERM (or SystemExit from a callback),
-    then `on_exit(node)` and clean-up. A ValueError while constructing (bad parameters, bad
-    model) is one clear line on stderr and exit code 2, not a traceback."""
+    then `on_exit(node)` and clean-up. A bad parameter (out of range, wrong type, invalid
+    value) or model while constructing is one clear line on stderr and exit code 2."""
     rclpy.init(args=args)
     try:
         node = make_node()
-    except ValueError as err:
+    except (ValueError, ParameterException) as err:
         print(f'cannot start: {err}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return 2
