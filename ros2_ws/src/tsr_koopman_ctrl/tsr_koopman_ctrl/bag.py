@@ -22,6 +22,8 @@ import time
 from mcap.records import Channel, DataEnd, Footer, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
+import numpy as np
+from tsr_sim.dynamics import PLANAR_DIM, SPATIAL_DIM
 import yaml
 
 METADATA_FILE = 'metadata.yaml'
@@ -383,8 +385,6 @@ def read_loop(path, scale):
     """Read the loop of a bag: {'step', 'tau', 'x' (dimensionless), 'u' (per step, nan where
     no command), 'report'}. Republished states count once; the first command per step is the
     one a lockstep simulator applies."""
-    import numpy as np
-    from tsr_sim.dynamics import PLANAR_DIM, SPATIAL_DIM
     reader = BagReader(path)
     states, tensions = {}, {}
     for msg, decoded in reader.decoded({STATE_TOPIC, TENSION_TOPIC}):
