@@ -19,9 +19,9 @@ def start_node(domain_id, tmp_path):
     from tsr_koopman_ctrl.launcher import NodeProcess
     started = []
 
-    def start(package, exe, name, params=None):
+    def start(package, exe, name, params=None, extra_args=()):
         proc = NodeProcess(package, exe, name, params, domain_id=domain_id,
-                           log_path=str(tmp_path / f'{name}.log'))
+                           log_path=str(tmp_path / f'{name}.log'), extra_args=extra_args)
         started.append(proc)
         return proc
 

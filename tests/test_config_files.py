@@ -7,22 +7,15 @@ from tsr_koopman_ctrl.launcher import executable
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def test_sim_example_params_run_a_lockstep_simulator(ros, domain_id, tmp_path):
-    import subprocess
+def test_sim_example_params_run_a_lockstep_simulator(ros, start_node):
     from tsr_msgs.msg import TsrState
     from tsr_sim import ros_io
     params = os.path.join(ROOT, 'ros2_ws/src/tsr_sim/config/sim.yaml')
-    proc = subprocess.Popen([executable('tsr_sim', 'sim_node'), '--ros-args', '--params-file',
-                             params], env=dict(os.environ, ROS_DOMAIN_ID=str(domain_id)),
-                            stdout=open(tmp_path / 'sim.log', 'w'), stderr=subprocess.STDOUT)
-    try:
-        got = []
-        ros.node.create_subscription(TsrState, ros_io.STATE_TOPIC, got.append, ros_io.LOOP_QOS)
-        ros.spin_until(lambda: got, what='a state from the example configuration')
-        assert abs(got[0].length - 1000.0) < 1e-6 and got[0].step == 0
-    finally:
-        proc.terminate()
-        proc.wait(10)
+    start_node('tsr_sim', 'sim_node', 'tsr_sim', extra_args=['--params-file', params])
+    got = []
+    ros.node.create_subscription(TsrState, ros_io.STATE_TOPIC, got.append, ros_io.LOOP_QOS)
+    ros.spin_until(lambda: got, what='a state from the example configuration')
+    assert abs(got[0].length - 1000.0) < 1e-6 and got[0].step == 0
 
 
 def test_bad_parameters_fail_at_start_with_one_line(domain_id):
