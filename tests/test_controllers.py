@@ -46,3 +46,31 @@ def test_settle_index_needs_to_stay_in_the_zone():
     inside, outside = [0.0, 0, 0.005, 0], [0.5, 0, 0, 0]
     assert settle_index(np.array([outside, inside, outside, inside, inside])) == 3
     assert settle_index(np.array([inside, outside])) is None
+
+
+def test_fractional_order_law_deploys_into_the_one_percent_zone():
+    controller = controllers.FractionalOrderPd()
+    states, u = controllers.closed_loop(controller, dynamics.PAPER_INITIAL_STATE, 2000)
+    summary = deployment_summary(np.arange(2001) * dynamics.PAPER_STEP, states, u)
+    assert summary['settle_tau'] is not None and summary['settle_tau'] < 9.0
+    assert np.all((u >= 0.0) & (u <= 5.0))
+
+
+def test_fractional_derivative_of_order_one_is_the_backward_difference():
+    controller = controllers.FractionalOrderPd(alpha=1.0, gains=[0.0, 1.0, 0.0, 0.0])
+    thetas = [0.0, 0.01, 0.03, 0.06]
+    u = [controller.compute([th, 0.0, 0.0, 0.0]) for th in thetas]
+    # u = 3 - D theta; D^1 by Grunwald-Letnikov is (theta_k - theta_(k-1)) / h.
+    np.testing.assert_allclose(u[1:], 3.0 - np.diff(thetas) / dynamics.PAPER_STEP, atol=1e-9)
+
+
+def test_fractional_derivative_of_a_ramp_matches_the_closed_form():
+    # D^a t = t^(1-a) / Gamma(2-a) (Riemann-Liouville, the ramp starting at t = 0).
+    alpha, h = 0.5, 0.01
+    controller = controllers.FractionalOrderPd(alpha=alpha, gains=[0, 1.0, 0, 0], h=h,
+                                               memory=1000)
+    controller.history = np.zeros(len(controller.weights))   # the ramp is 0 before t = 0
+    for k in range(501):
+        u = controller.compute([k * h, 0.0, 0.0, 0.0])
+    expected = (500 * h) ** (1 - alpha) / math.gamma(2 - alpha)
+    assert 3.0 - u == pytest.approx(expected, rel=0.01)

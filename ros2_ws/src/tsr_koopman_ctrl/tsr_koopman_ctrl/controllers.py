@@ -5,11 +5,16 @@ The node (and any closed loop) passes u through `TensionLimiter`, the single out
 """
 
 import math
+import pathlib
 
 import numpy as np
 import scipy.linalg
-
 from tsr_sim import dynamics
+
+from tsr_koopman_ctrl import lifted
+
+#: The shipped model, trained with the paper's settings (models/README.md says how).
+DEFAULT_MODEL = str(pathlib.Path('models') / 'koopman_default')
 
 
 class LinearisedLqr:
@@ -37,7 +42,187 @@ class LinearisedLqr:
         return dynamics.EQUILIBRIUM_TENSION - float(self.gain @ planar)
 
 
-CONTROLLERS = {LinearisedLqr.name: LinearisedLqr}
+class KoopmanLqr:
+    """Koopman-LQR (paper Section III-C): discrete LQR on the learned lifted system (A, B).
+
+    u_hat = u_hat_d - K (psi_x(x) - z_d) with z_d = psi_x(0), u_hat_d = psi_u(0, 3), K from the
+    discrete Riccati equation with Q' = I (``state_weight='lifted'``, the paper) or C^T C
+    (``'state'``) and R' = `r` (15 in the paper); u = psi_uu^-1(u_hat / psi_ux(x)).
+    """
+
+    name = 'koopman_lqr'
+
+    def __init__(self, model=DEFAULT_MODEL, r=15.0, state_weight='lifted'):
+        self.model = model if isinstance(model, lifted.LiftedModel) \
+            else lifted.LiftedModel.load(model)
+        a, b, c = self.model.A, self.model.B, self.model.C
+        weights = {'lifted': np.eye(a.shape[0]), 'state': c.T @ c}
+        if state_weight not in weights:
+            raise ValueError(f'state_weight must be one of {sorted(weights)}, got '
+                             f'{state_weight!r}')
+        if not r > 0.0:
+            raise ValueError(f'R must be > 0, got {r}')
+        self.q = weights[state_weight]
+        self.gain, self.riccati = discrete_lqr_gain(a, b, self.q, r)
+        origin = dynamics.equilibrium_state(self.model.n)
+        self.z_ref = self.model.psi_x(origin)
+        self.u_hat_ref = float(self.model.psi_u(origin, dynamics.EQUILIBRIUM_TENSION))
+
+    def reset(self):
+        pass
+
+    def compute(self, x):
+        planar = np.asarray(x, dtype=float)[:self.model.n]
+        u_hat = self.u_hat_ref - float(self.gain @ (self.model.psi_x(planar) - self.z_ref))
+        return self.model.tension_from_input(planar, u_hat)
+
+    def closed_loop_spectral_radius(self):
+        a, b = self.model.A, self.model.B
+        return float(np.max(np.abs(np.linalg.eigvals(a - b @ self.gain[None, :]))))
+
+
+class KoopmanMpc:
+    """Constrained MPC on the lifted linear model (Korda & Mezic 2018), solved by OSQP.
+
+    Decision: the lifted inputs v_j = u_hat_j - u_hat_d over `horizon` steps and one slack s.
+    Predictions e_k = z_k - z_d follow e+ = A e + B v + d, with d = A z_d + B u_hat_d - z_d the
+    model's own drift at the reference (so an imperfect fixed point is accounted for, not
+    ignored). Cost: sum e'Qe + r v^2, terminal weight from the DARE (so with no active
+    constraint the first move is the Koopman-LQR move), plus `slack_weight` (s + s^2).
+    Constraints: 0 <= u <= u_max, mapped to bounds on u_hat with psi_ux frozen at the measured
+    state (psi_uu is increasing); |theta_k| = |C_theta z_k| <= theta_max + s, soft so the QP is
+    always feasible. Only q and the bounds change per step: one OSQP setup, warm-started.
+    If OSQP does not report "solved" the Koopman-LQR move is used and `fallbacks` counted.
+    """
+
+    name = 'koopman_mpc'
+
+    def __init__(self, model=DEFAULT_MODEL, horizon=30, r=15.0, state_weight='lifted',
+                 u_max=5.0, theta_max=0.6, slack_weight=1e4, terminal='riccati'):
+        import osqp
+        import scipy.sparse as sparse
+        self.lqr = KoopmanLqr(model, r, state_weight)
+        self.model, self.horizon, self.u_max = self.lqr.model, int(horizon), float(u_max)
+        self.theta_max = float(theta_max)
+        a, b, q = self.model.A, self.model.B, self.lqr.q
+        terminals = {'riccati': self.lqr.riccati, 'stage': q}
+        if terminal not in terminals:
+            raise ValueError(f'terminal must be one of {sorted(terminals)}, got {terminal!r}')
+        p_terminal = terminals[terminal]
+        nz, n_steps = a.shape[0], self.horizon
+        powers = [np.eye(nz)]
+        for _ in range(n_steps):
+            powers.append(a @ powers[-1])
+        self.free = np.vstack(powers[1:])                    # e_k from e_0, k = 1..N
+        self.forced = np.zeros((n_steps * nz, n_steps))      # e_k from v_j
+        self.drift_gain = np.zeros((n_steps * nz, nz))       # e_k from the drift d
+        for k in range(1, n_steps + 1):
+            rows = slice((k - 1) * nz, k * nz)
+            for j in range(k):
+                self.forced[rows, j] = (powers[k - 1 - j] @ b)[:, 0]
+            self.drift_gain[rows] = sum(powers[:k])
+        weights = [q] * (n_steps - 1) + [p_terminal]
+        self.q_bar = scipy.linalg.block_diag(*weights)
+        hessian = self.forced.T @ self.q_bar @ self.forced + r * np.eye(n_steps)
+        theta_rows = self.forced[dynamics.THETA::nz]         # theta_k from v (N, N)
+        slack = np.zeros((n_steps, 1))
+        constraints = np.block([[np.eye(n_steps), slack],
+                                [theta_rows, np.ones((n_steps, 1))],
+                                [theta_rows, -np.ones((n_steps, 1))],
+                                [np.zeros((1, n_steps)), np.ones((1, 1))]])
+        full_hessian = scipy.linalg.block_diag(2.0 * hessian, [[2.0 * slack_weight]])
+        self.slack_weight = slack_weight
+        self.drift = a @ self.lqr.z_ref + b[:, 0] * self.lqr.u_hat_ref - self.lqr.z_ref
+        self.solver = osqp.OSQP()
+        self.solver.setup(sparse.triu(full_hessian, format='csc'), np.zeros(n_steps + 1),
+                          sparse.csc_matrix(constraints),
+                          *self.bounds(np.zeros(n_steps * nz), -1.0, 1.0),
+                          verbose=False, warm_starting=True, eps_abs=1e-6, eps_rel=1e-6,
+                          max_iter=4000, polishing=True)
+        self.fallbacks = 0
+
+    def bounds(self, predicted, u_hat_low, u_hat_high):
+        """OSQP's l, u for the free (v = 0) prediction `predicted` of e_1..e_N."""
+        n_steps = self.horizon
+        theta = predicted[dynamics.THETA::self.model.A.shape[0]] + self.lqr.z_ref[dynamics.THETA]
+        low = np.r_[np.full(n_steps, u_hat_low), -self.theta_max - theta,
+                    np.full(n_steps, -np.inf), 0.0]
+        high = np.r_[np.full(n_steps, u_hat_high), np.full(n_steps, np.inf),
+                     self.theta_max - theta, np.inf]
+        return low, high
+
+    def reset(self):
+        self.fallbacks = 0
+
+    def compute(self, x):
+        planar = np.asarray(x, dtype=float)[:self.model.n]
+        e0 = self.model.psi_x(planar) - self.lqr.z_ref
+        gain = float(self.model.psi_ux(planar))
+        input_map = self.model.input_map
+        u_hat_low = gain * float(input_map(0.0)) - self.lqr.u_hat_ref
+        u_hat_high = gain * float(input_map(self.u_max)) - self.lqr.u_hat_ref
+        predicted = self.free @ e0 + self.drift_gain @ self.drift
+        linear = np.r_[2.0 * self.forced.T @ self.q_bar @ predicted, self.slack_weight]
+        low, high = self.bounds(predicted, u_hat_low, u_hat_high)
+        self.solver.update(q=linear, l=low, u=high)
+        result = self.solver.solve()
+        if result.info.status_val != 1:
+            self.fallbacks += 1
+            return self.lqr.compute(planar)
+        return self.model.tension_from_input(planar, self.lqr.u_hat_ref + result.x[0])
+
+
+class FractionalOrderPd:
+    """Fractional-order tension law (Sun 2014 type, PD^alpha), gains documented here.
+
+    u = 3 - (k_theta theta + k_l (l - 1)) - D^alpha (d_theta theta + d_l (l - 1)), the
+    fractional derivative D^alpha by Grunwald-Letnikov over the last `memory` samples of period h
+    (history before the first sample taken equal to it). With alpha = 1 this is the linearised
+    LQR law with the rates replaced by differenced positions; the default gains are that law's
+    (Q = I, R = 1) and alpha = 0.9 adds the fractional operator's memory.
+    """
+
+    name = 'fractional_pd'
+
+    def __init__(self, alpha=0.9, gains=None, h=dynamics.PAPER_STEP, memory=200):
+        if not 0.0 < alpha <= 1.5:
+            raise ValueError(f'alpha must be in (0, 1.5], got {alpha}')
+        k = LinearisedLqr().gain if gains is None else np.asarray(gains, dtype=float)
+        self.k_theta, self.d_theta, self.k_l, self.d_l = k
+        self.alpha, self.h = alpha, h
+        weights = [1.0]
+        for j in range(1, memory + 1):
+            weights.append(weights[-1] * (1.0 - (alpha + 1.0) / j))
+        self.weights = np.array(weights) / h ** alpha
+        self.reset()
+
+    def reset(self):
+        self.history = None
+
+    def compute(self, x):
+        x = np.asarray(x, dtype=float)
+        signal = self.d_theta * x[dynamics.THETA] + self.d_l * x[dynamics.LENGTH_OFFSET]
+        if self.history is None:
+            self.history = np.full(len(self.weights), signal)
+        self.history = np.roll(self.history, 1)
+        self.history[0] = signal
+        derivative = float(self.weights @ self.history)
+        proportional = self.k_theta * x[dynamics.THETA] + self.k_l * x[dynamics.LENGTH_OFFSET]
+        return dynamics.EQUILIBRIUM_TENSION - proportional - derivative
+
+
+def discrete_lqr_gain(a, b, q, r):
+    """K (N,) of u = -K z for z+ = A z + B u minimising sum z'Qz + r u^2, and the DARE's P."""
+    r = np.atleast_2d(float(r))
+    try:
+        p = scipy.linalg.solve_discrete_are(a, b, q, r)
+    except (np.linalg.LinAlgError, ValueError) as error:
+        raise ValueError(f'no LQR gain for this (A, B): {error} (is it stabilisable?)')
+    return np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a)[0], p
+
+
+CONTROLLERS = {LinearisedLqr.name: LinearisedLqr, KoopmanLqr.name: KoopmanLqr,
+               KoopmanMpc.name: KoopmanMpc, FractionalOrderPd.name: FractionalOrderPd}
 
 
 def make_controller(name, **options):

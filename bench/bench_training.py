@@ -1,0 +1,56 @@
+"""Deep Koopman training throughput on this machine, and the time to the shipped model's error.
+
+Figures: trajectories (30-step samples) per second through forward + backward + Adam step at
+the shipped model's config and batch size, with all of torch's CPU threads; the time per epoch
+of 4e4 trajectories that implies; and the time to reach the shipped model's validation error,
+estimated as (epochs the shipped model needed to reach its best) x (measured epoch time).
+"""
+
+import argparse
+import time
+
+import torch
+
+from tsr_koopman_ctrl import controllers, koopman_model, model_file
+from tsr_koopman_ctrl import dataset as datasets
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--model', default=controllers.DEFAULT_MODEL)
+    parser.add_argument('--batches', type=int, default=30)
+    args = parser.parse_args()
+    _, config, meta = model_file.load(args.model)
+    data, _ = datasets.sample(datasets.SamplingConfig(trajectories=config.batch_size * 4))
+    x = torch.as_tensor(data.x, dtype=torch.float32)
+    u = torch.as_tensor(data.u, dtype=torch.float32)
+    net = koopman_model.DeepKoopman(config, x.reshape(-1, 4).mean(0), x.reshape(-1, 4).std(0))
+    optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
+
+    def step(i):
+        index = torch.arange(i * config.batch_size, (i + 1) * config.batch_size) % len(x)
+        loss, _ = koopman_model.total_loss(net, x[index], u[index])
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+
+    for i in range(3):
+        step(i)   # warm-up
+    start = time.perf_counter()
+    for i in range(args.batches):
+        step(i)
+    seconds = time.perf_counter() - start
+    rate = args.batches * config.batch_size / seconds
+    trained = meta['data']['train_trajectories'] * (1 - config.validation_fraction)
+    epoch_s = trained / rate
+    best_epoch = meta['metrics']['validation_best']['epoch']
+    print(f'threads {torch.get_num_threads()}, batch {config.batch_size}, K {config.lift_dim}')
+    print(f'training throughput: {rate:,.0f} trajectories/s ({rate * 30:,.0f} state-steps/s)')
+    print(f'epoch of {trained:,.0f} trajectories: {epoch_s:.1f} s')
+    print(f"time to the shipped model's validation error (best at epoch {best_epoch}): "
+          f'~{best_epoch * epoch_s / 60:.1f} min (recorded while training: '
+          f"{meta['training_seconds'] / 60:.1f} min for {config.epochs} epochs)")
+
+
+if __name__ == '__main__':
+    main()
