@@ -1,5 +1,7 @@
 """The main job over DDS: simulator, controller and recorder as three processes."""
 
+import pathlib
+
 import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
@@ -9,10 +11,12 @@ from tsr_koopman_ctrl.bag import read_loop
 from tsr_sim import dynamics
 from tsr_sim.units import Scale
 
+SHIPPED_MODEL = str(pathlib.Path(__file__).resolve().parents[1] / 'models' / 'koopman_default')
+
 
 def test_deployment_over_dds_matches_the_ros_free_loop_and_leaves_a_bag(tmp_path, domain_id):
     steps = 400
-    args = ['--steps', str(steps), '--out', str(tmp_path / 'out'),
+    args = ['--controller', 'linear_lqr', '--steps', str(steps), '--out', str(tmp_path / 'out'),
             '--bags', str(tmp_path / 'bags'), '--domain', str(domain_id)]
     assert deploy.main(args) == 0
 
@@ -36,3 +40,20 @@ def test_deployment_over_dds_matches_the_ros_free_loop_and_leaves_a_bag(tmp_path
     (run_dir,) = (tmp_path / 'out').iterdir()
     assert (run_dir / 'deployment.png').stat().st_size > 10_000
     assert 'linear_lqr' in (run_dir / 'summary.md').read_text()
+
+
+def test_shipped_model_deployment_over_dds_matches_the_ros_free_loop(tmp_path, domain_id):
+    steps = 150
+    args = ['--controller', 'koopman_mpc', '--model', SHIPPED_MODEL, '--steps', str(steps),
+            '--out', str(tmp_path / 'o'), '--bags', str(tmp_path / 'b'),
+            '--domain', str(domain_id)]
+    assert deploy.main(args) == 0
+    (bag_path,) = (tmp_path / 'b').iterdir()
+    loop = read_loop(str(bag_path), Scale())
+    mpc = controllers.KoopmanMpc(SHIPPED_MODEL)
+    want_x, want_u = controllers.closed_loop(mpc, dynamics.PAPER_INITIAL_STATE, steps)
+    np.testing.assert_allclose(loop['x'], want_x, atol=1e-7)
+    np.testing.assert_allclose(loop['u'][:steps], want_u, atol=1e-7)
+    (run_dir,) = (tmp_path / 'o').iterdir()
+    summary = (run_dir / 'summary.md').read_text()
+    assert 'koopman_mpc' in summary and ' / ' in summary   # compute times parsed from the log

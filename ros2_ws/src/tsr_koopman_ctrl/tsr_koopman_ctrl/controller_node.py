@@ -28,7 +28,7 @@ class ControllerNode(Node):
 
     def __init__(self):
         super().__init__('tsr_controller')
-        name = declare(self, 'controller', 'koopman_lqr',
+        name = declare(self, 'controller', 'koopman_mpc',
                        f'control law: one of {sorted(CONTROLLERS)}')
         model = declare(self, 'model', DEFAULT_MODEL, 'koopman_* laws: model directory '
                         '(relative to the working directory or absolute)')
@@ -36,7 +36,7 @@ class ControllerNode(Node):
         state_weight = declare(self, 'lqr_state_weight', 'lifted',
                                "koopman_lqr: Q' = I ('lifted', paper) or C^T C ('state')")
         options = {'koopman_lqr': {'model': model, 'r': r, 'state_weight': state_weight},
-                   'koopman_mpc': {'model': model}}.get(name, {})
+                   'koopman_mpc': {'model': model}}.get(name, {})   # MPC: its own defaults
         self.controller = make_controller(name, **options)
         self.scale = declare_scale(self)
         max_tension = declare(self, 'max_tension', self.scale.u_to_tension(5.0),

@@ -167,6 +167,7 @@ def parser():
     p.add_argument('--test-seed', type=int, default=1_000_003)
     p.add_argument('--no-sindy', action='store_true', help='skip SINDy (slowest fit)')
     p.add_argument('--sweep', action='store_true', help='also run the size and K sweeps')
+    p.add_argument('--sweep-only', action='store_true', help='the sweeps, not the comparison')
     p.add_argument('--sweep-trajectories', type=int, nargs='+',
                    default=[10_000, 20_000, 30_000, 40_000, 50_000, 60_000])
     p.add_argument('--sweep-lift-dims', type=int, nargs='+', default=[8, 16, 24, 36, 48])
@@ -182,15 +183,17 @@ def main(argv=None):
     try:
         test, _ = datasets.sample(datasets.SamplingConfig(trajectories=args.test_trajectories,
                                                           seed=args.test_seed))
-        results, train_size = compare(args.model, test, not args.no_sindy, log)
+        if not args.sweep_only:
+            results, train_size = compare(args.model, test, not args.no_sindy, log)
     except (ValueError, model_file.ModelFileError) as error:
         print(f'evaluate: {error}', file=sys.stderr)
         return 2
-    (out / 'comparison.json').write_text(json.dumps(results, indent=1) + '\n')
-    (out / 'comparison.md').write_text(comparison_markdown(results, train_size, len(test)))
-    plot_error_vs_step(results, out / 'error_vs_step.png')
-    log((out / 'comparison.md').read_text())
-    if args.sweep:
+    if not args.sweep_only:
+        (out / 'comparison.json').write_text(json.dumps(results, indent=1) + '\n')
+        (out / 'comparison.md').write_text(comparison_markdown(results, train_size, len(test)))
+        plot_error_vs_step(results, out / 'error_vs_step.png')
+        log((out / 'comparison.md').read_text())
+    if args.sweep or args.sweep_only:
         config = lifted.LiftedModel.load(args.model).config
         rows = sweep(config, test, args.sweep_trajectories, args.sweep_lift_dims,
                      args.sweep_epochs, not args.no_sindy, log)

@@ -9,6 +9,17 @@ from tsr_sim.dynamics import LENGTH_OFFSET, THETA
 
 ZONE = 0.01
 
+#: Minimum-time deployment from the paper's x0 with 0 <= u <= 5 against the largest |theta|
+#: allowed (../shared/TSR_PHYSICS.md; 1.05 rad is where the unconstrained optimum swings).
+#: Below 0.4 rad only the u >= 0 figures exist (20.5 tau at 0.2, 11.7 at 0.3): lower bounds.
+FRONTIER_SWING_TAU = ((0.2, 20.5), (0.3, 11.7), (0.4, 8.8), (0.6, 4.3), (0.8, 3.3), (1.05, 2.7))
+
+
+def frontier_tau(swing):
+    """Minimum deployment time (tau) at a swing max |theta|, interpolated in the table."""
+    swings, taus = zip(*FRONTIER_SWING_TAU)
+    return float(np.interp(swing, swings, taus))
+
 
 def settle_index(states, zone=ZONE):
     """First index from which the state stays in the zone to the end; None if it never does."""

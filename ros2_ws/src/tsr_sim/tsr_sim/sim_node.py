@@ -52,7 +52,8 @@ class SimNode(Node):
             self, 'wait_for_subscribers', 0, 'lockstep: publish no state until the state topic '
             'has this many subscribers (controller, recorder)', 0, 1000)
         self.exit_on_finish = declare(self, 'exit_on_finish', False,
-                                      'shut the node down when max_steps is reached')
+                                      'shut the node down when max_steps is reached or the '
+                                      'state leaves the domain')
 
         self.state_pub = self.create_publisher(TsrState, STATE_TOPIC, LOOP_QOS)
         self.status_pub = self.create_publisher(SimStatus, STATUS_TOPIC, LATCHED_QOS)
@@ -152,6 +153,8 @@ class SimNode(Node):
         if self.plant.status is Status.HALTED_OUT_OF_DOMAIN:
             self.get_logger().error(self.plant.message)
             self.publish_status()
+            if self.exit_on_finish:
+                raise SystemExit(0)   # the run is over; the status and the bag say how
             return
         self.publish_state()
         if self.progress_every and self.plant.step_index % self.progress_every == 0:
