@@ -110,7 +110,7 @@ def summarise(run_dir, bag_path, controller, x0):
     print(f'[deploy] bag {bag_path}: {loop["report"].summary()}', flush=True)
     summary = deployment_summary(loop['tau'], loop['x'], loop['u'][:-1])
     swing = max(abs(summary['theta_min']), abs(summary['theta_max']))
-    paper_start = list(x0) == list(dynamics.PAPER_INITIAL_STATE)
+    paper_start = [float(v) for v in x0] == dynamics.PAPER_INITIAL_STATE.tolist()
     frontier = frontier_tau(swing) if paper_start and summary['settle_tau'] else None
     summary.update(controller=controller, x0=[float(v) for v in x0], bag=bag_path,
                    steps=int(loop['step'][-1]), frontier_tau=frontier,
@@ -131,16 +131,14 @@ def compute_times(log_path):
     return {'compute_median_us': float(median), 'compute_p99_us': float(p99)}
 
 
-def write_report(run_dir, summaries, runs, title):
-    plot_path = os.path.join(run_dir, 'deployment.png')
-    plot_deployments(runs, plot_path, title=title)
+def write_report(run_dir, summaries):
     with open(os.path.join(run_dir, 'summary.json'), 'w') as f:
         json.dump(summaries, f, indent=2)
     table = summary_table(summaries)
     with open(os.path.join(run_dir, 'summary.md'), 'w') as f:
         f.write(table + '\n')
     print(table)
-    print(f'[deploy] plot {plot_path}; summary {run_dir}/summary.md', flush=True)
+    print(f'[deploy] plots and summary in {run_dir}/', flush=True)
 
 
 def summary_table(summaries):
@@ -172,8 +170,9 @@ def deploy_one(args):
     bag_path = run(args, args.controller, args.x0, run_dir, name)
     summary, loop = summarise(run_dir, bag_path, args.controller, args.x0)
     summary['planned_steps'] = args.steps
-    write_report(run_dir, [summary], {args.controller: loop},
-                 f'TSR deployment over DDS: {args.controller}')
+    plot_deployments({args.controller: loop}, os.path.join(run_dir, 'deployment.png'),
+                     title=f'TSR deployment over DDS: {args.controller}')
+    write_report(run_dir, [summary])
     return [summary]
 
 
@@ -181,7 +180,8 @@ def compare(args):
     """Every controller from every start, each a full three-process deployment over DDS."""
     compare_dir = os.path.join(args.out, f'compare_{stamp()}')
     summaries = []
-    for index, x0 in enumerate([list(dynamics.PAPER_INITIAL_STATE), *OTHER_INITIAL_STATES]):
+    starts = [[float(v) for v in dynamics.PAPER_INITIAL_STATE], *OTHER_INITIAL_STATES]
+    for index, x0 in enumerate(starts):
         runs = {}
         for controller in sorted(CONTROLLERS):
             name = f'compare_{controller}_x{index}_{stamp()}'
@@ -192,7 +192,7 @@ def compare(args):
             summaries.append(summary)
         plot_deployments(runs, os.path.join(compare_dir, f'x0_{index}.png'),
                          title=f'TSR deployment over DDS from x0 = {x0}')
-    write_report(compare_dir, summaries, {}, 'unused')
+    write_report(compare_dir, summaries)
     return summaries
 
 
