@@ -230,7 +230,8 @@ def test_mpc_without_active_constraints_moves_like_the_lqr(tiny_model):
     from tsr_koopman_ctrl import controllers
     model = lifted.LiftedModel.load(tiny_model[0])
     mpc = controllers.KoopmanMpc(model, horizon=10, r=15.0, state_weight='lifted',
-                                 terminal='riccati', u_max=1e6, theta_max=1e6)
+                                 terminal='riccati', input_cost='level', u_max=1e6,
+                                 theta_max=1e6)
     lqr = controllers.KoopmanLqr(model)
     mpc.drift = np.zeros_like(mpc.drift)   # the LQR assumes z_d is a fixed point
     for x in ([0.0, 0.0, 0.0, 0.0], [0.002, -0.001, 0.001, 0.0]):
