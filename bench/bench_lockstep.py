@@ -15,16 +15,18 @@ from tsr_koopman_ctrl.bag import BagReader, STATE_TOPIC
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--steps', type=int, default=3000)
+    parser.add_argument('--controller', default='linear_lqr',
+                        help='linear_lqr (~2 us per step) measures the transport alone')
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         bags = os.path.join(tmp, 'bags')
-        if deploy.main(['--steps', str(args.steps), '--out', os.path.join(tmp, 'out'),
-                        '--bags', bags]) != 0:
+        if deploy.main(['--controller', args.controller, '--steps', str(args.steps),
+                        '--out', os.path.join(tmp, 'out'), '--bags', bags]) != 0:
             raise SystemExit('deployment failed')
         bag_dir = os.path.join(bags, os.listdir(bags)[0])
         times = [m.log_time_ns for m in BagReader(bag_dir).messages({STATE_TOPIC})]
     span = (times[-1] - times[0]) * 1e-9
-    print(f'lockstep over DDS: {len(times) - 1} steps in {span:.2f} s = '
+    print(f'lockstep over DDS ({args.controller}): {len(times) - 1} steps in {span:.2f} s = '
           f'{(len(times) - 1) / span:,.0f} steps/s '
           f'({span / (len(times) - 1) * 1e3:.2f} ms per state -> command -> state round trip)')
 

@@ -151,11 +151,12 @@ def summary_table(summaries):
         tau = s['steps'] * dynamics.PAPER_STEP
         return f'left the domain at tau {tau:.2f}' if s['steps'] < s['planned_steps'] \
             else 'not reached'
-    rows = ['| controller | x0 | settle tau (1% zone) | theta range [rad] | l overshoot | '
-            'max u | integral u dtau | compute median / p99 [us] | frontier tau | ratio |',
-            '|---|---|---|---|---|---|---|---|---|---|']
+    rows = ['| controller | x0 | settle tau (1% zone) | final l | theta range [rad] | '
+            'l overshoot | max u | integral u dtau | compute median / p99 [us] | '
+            'frontier tau | ratio |', '|---|---|---|---|---|---|---|---|---|---|---|']
     for s in summaries:
-        rows.append(f"| {s['controller']} | {s['x0']} | {settle(s)} | "
+        final_l = s['final_state'][dynamics.LENGTH_OFFSET] + 1.0
+        rows.append(f"| {s['controller']} | {s['x0']} | {settle(s)} | {final_l:.3f} | "
                     f"[{s['theta_min']:.3f}, {s['theta_max']:.3f}] | "
                     f"{s['length_overshoot']:.4f} | {s['tension_max']:.3f} | "
                     f"{s['tension_integral']:.2f} | {fmt(s['compute_median_us'], 0)} / "

@@ -39,7 +39,8 @@ class MonotoneMap:
     def slope_at(self, u):
         """d psi_uu / du at a scalar u (>= a / half > 0)."""
         s = (float(u) - self.mid) / self.half
-        sech2 = 1.0 / np.cosh(self.steepness * s + self.shift) ** 2
+        decay = np.exp(-2.0 * np.abs(self.steepness * s + self.shift))
+        sech2 = 4.0 * decay / (1.0 + decay) ** 2   # 1 / cosh^2 without overflow
         return (self.slope + float(np.sum(self.amplitude * self.steepness * sech2))) / self.half
 
     def inverse(self, value, low=0.0, high=None, tol=1e-12):
