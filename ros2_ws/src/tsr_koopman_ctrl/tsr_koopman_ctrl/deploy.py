@@ -66,7 +66,7 @@ def run(args, controller, x0, run_dir, name):
         raise ValueError('--out and --bags must differ: a bag directory holds only the bag')
     os.makedirs(run_dir, exist_ok=True)
     domain = args.domain if args.domain is not None else random.randint(120, 219)
-    print(f'[deploy] {controller} from x0 = {list(x0)} for {args.steps} steps '
+    print(f'[deploy] {controller} from x0 = {[float(v) for v in x0]} for {args.steps} steps '
           f'(tau {args.steps * dynamics.PAPER_STEP:g}) on ROS_DOMAIN_ID {domain}', flush=True)
 
     def start(package, exe, node, params, console=False):
