@@ -1,5 +1,6 @@
 """The learning core, ROS-free: sampler, dataset file, model file, training, baselines."""
 
+import dataclasses
 import json
 import pathlib
 
@@ -89,15 +90,15 @@ def test_training_lowers_loss_and_numpy_model_matches_torch(tiny_model, small_da
 
 
 def test_resume_continues_from_the_checkpoint(small_data, tmp_path):
-    first = train.Trainer(TINY.__class__(**{**TINY.__dict__, 'epochs': 2}), tmp_path,
+    first = train.Trainer(dataclasses.replace(TINY, epochs=2), tmp_path,
                           progress=False)
     first.fit(small_data)
-    longer = train.Trainer(TINY.__class__(**{**TINY.__dict__, 'epochs': 3}), tmp_path,
+    longer = train.Trainer(dataclasses.replace(TINY, epochs=3), tmp_path,
                            progress=False)
     longer.fit(small_data, resume=True)
     assert [h['epoch'] for h in longer.history] == [1, 2, 3]
     assert longer.history[:2] == first.history
-    other = train.Trainer(TINY.__class__(**{**TINY.__dict__, 'lift_dim': 5}), tmp_path,
+    other = train.Trainer(dataclasses.replace(TINY, lift_dim=5), tmp_path,
                           progress=False)
     with pytest.raises(ValueError, match=r"different \['lift_dim'\]"):
         other.fit(small_data, resume=True)
@@ -264,3 +265,13 @@ def test_evaluate_command_writes_the_comparison(tiny_model, tmp_path):
     assert results['deep_koopman']['summed_mse'] == pytest.approx(own['summed_mse'])
     assert '| edmd_stabilised |' in (out / 'comparison.md').read_text()
     assert (out / 'error_vs_step.png').stat().st_size > 10_000
+
+
+def test_equilibrium_loss_pins_the_reference_as_a_fixed_point(small_data):
+    drifts = []
+    for weight in (0.0, 10.0):
+        config = dataclasses.replace(TINY, weight_equilibrium=weight)
+        net = train.Trainer(config, progress=False).fit(small_data)
+        with torch.no_grad():
+            drifts.append(koopman_model.equilibrium_drift(net).item())
+    assert drifts[1] < 0.2 * drifts[0], drifts
