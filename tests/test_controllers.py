@@ -93,3 +93,37 @@ def test_koopman_mpc_with_the_shipped_model_deploys_close_to_the_target():
 def test_koopman_lqr_gain_stabilises_the_shipped_lifted_model():
     controller = controllers.KoopmanLqr(SHIPPED_MODEL)
     assert controller.closed_loop_spectral_radius() < 1.0
+
+
+def exact_linear_lifted_model(lift_dim=2):
+    """A LiftedModel whose lifted system is the exact discretised linearisation at x = 0:
+    Phi = 0, psi_ux = 1, psi_uu(u) = u - 3, A = blockdiag(expm(A_c h), 0.5 I), B = [B_d; 0]."""
+    import scipy.linalg
+    from tsr_koopman_ctrl import lifted, model_file
+    config = model_file.KoopmanConfig(lift_dim=lift_dim, hidden=3, layers=1, input_hidden=3,
+                                      input_layers=1, input_terms=1)
+    tensors = {name: np.zeros(shape) for name, shape in model_file.expected_shapes(config).items()}
+    tensors['state_std'] = np.ones(4)
+    tensors['input_gain.2.bias'] = np.array([np.log(np.expm1(0.95))])   # psi_ux = 1
+    tensors['input_map.slope'] = np.array(np.log(np.expm1(2.5 - 1e-3)))   # slope 1 in u
+    tensors['input_map.offset'] = np.array(-0.5)                           # psi_uu(3) = 0
+    tensors['input_map.amplitude'] = np.array([-50.0])                     # no tanh term
+    a_c, b_c = dynamics.linearise()
+    h = dynamics.PAPER_STEP
+    block = scipy.linalg.expm(np.block([[a_c, b_c], [np.zeros((1, 5))]]) * h)
+    tensors['A'] = scipy.linalg.block_diag(block[:4, :4], 0.5 * np.eye(lift_dim))
+    tensors['B'] = np.r_[block[:4, 4:], np.zeros((lift_dim, 1))]
+    return lifted.LiftedModel(tensors, config), block[:4, :4], block[:4, 4:]
+
+
+def test_koopman_lqr_on_an_exact_linear_lift_is_the_discrete_lqr():
+    model, a_d, b_d = exact_linear_lifted_model()
+    assert float(model.input_map(3.0)) == pytest.approx(0.0, abs=1e-9)
+    controller = controllers.KoopmanLqr(model, r=1.0, state_weight='state')
+    gain, _ = controllers.discrete_lqr_gain(a_d, b_d, np.eye(4), 1.0)
+    x = np.array([0.01, -0.02, 0.015, 0.005])
+    assert controller.compute(x) == pytest.approx(3.0 - gain @ x, abs=1e-9)
+    # ... which deploys like the continuous linearised LQR.
+    states, u = controllers.closed_loop(controller, dynamics.PAPER_INITIAL_STATE, 2000)
+    summary = deployment_summary(np.arange(2001) * dynamics.PAPER_STEP, states, u)
+    assert summary['settle_tau'] is not None and summary['settle_tau'] < 12.0
