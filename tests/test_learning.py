@@ -260,7 +260,7 @@ def test_evaluate_command_writes_the_comparison(tiny_model, tmp_path):
     assert set(results) == {'deep_koopman', 'edmd', 'edmd_stabilised'}
     # Re-sampled training data and the numpy model reproduce the deep model's own figure.
     model = lifted.LiftedModel.load(tiny_model[0])
-    test, _ = datasets.sample(datasets.SamplingConfig(trajectories=200, seed=1_000_003))
+    test, _ = datasets.sample(datasets.SamplingConfig(trajectories=200, seed=datasets.TEST_SEED))
     own = errors.multistep_errors(model.predict(test.x[:, 0], test.u), test.x)
     assert results['deep_koopman']['summed_mse'] == pytest.approx(own['summed_mse'])
     assert '| edmd_stabilised |' in (out / 'comparison.md').read_text()

@@ -148,8 +148,7 @@ class KoopmanMpc:
                                 [np.zeros((1, n_steps)), np.ones((1, 1))]])
         full_hessian = scipy.linalg.block_diag(2.0 * hessian, [[2.0 * slack_weight]])
         self.slack_weight = slack_weight
-        self.z_ref, self.u_hat_ref = self.lqr.z_ref, self.lqr.u_hat_ref
-        self.drift = a @ self.z_ref + b[:, 0] * self.u_hat_ref - self.z_ref
+        self.drift = a @ self.lqr.z_ref + b[:, 0] * self.lqr.u_hat_ref - self.lqr.z_ref
         self.reset()
         self.solver = osqp.OSQP()
         self.solver.setup(sparse.triu(full_hessian, format='csc'), np.zeros(n_steps + 1),
@@ -161,7 +160,7 @@ class KoopmanMpc:
     def bounds(self, predicted, u_hat_low, u_hat_high):
         """OSQP's l, u for the free (v = 0) prediction `predicted` of e_1..e_N."""
         n_steps = self.horizon
-        theta = predicted[dynamics.THETA::self.model.A.shape[0]] + self.z_ref[dynamics.THETA]
+        theta = predicted[dynamics.THETA::self.model.A.shape[0]] + self.lqr.z_ref[dynamics.THETA]
         low = np.r_[np.full(n_steps, u_hat_low), -self.theta_max - theta,
                     np.full(n_steps, -np.inf), 0.0]
         high = np.r_[np.full(n_steps, u_hat_high), np.full(n_steps, np.inf),
@@ -174,11 +173,11 @@ class KoopmanMpc:
 
     def compute(self, x):
         planar = np.asarray(x, dtype=float)[:self.model.n]
-        e0 = self.model.psi_x(planar) - self.z_ref
+        e0 = self.model.psi_x(planar) - self.lqr.z_ref
         gain = float(self.model.psi_ux(planar))
         input_map = self.model.input_map
-        u_hat_low = gain * float(input_map(0.0)) - self.u_hat_ref
-        u_hat_high = gain * float(input_map(self.u_max)) - self.u_hat_ref
+        u_hat_low = gain * float(input_map(0.0)) - self.lqr.u_hat_ref
+        u_hat_high = gain * float(input_map(self.u_max)) - self.lqr.u_hat_ref
         predicted = self.free @ e0 + self.drift_gain @ self.drift
         linear = np.r_[2.0 * self.forced.T @ self.q_bar @ predicted, self.slack_weight]
         linear[0] -= 2.0 * self.rate_weight * self.last_move
@@ -187,9 +186,9 @@ class KoopmanMpc:
         result = self.solver.solve(raise_error=False)
         if result.info.status_val != 1:   # keep the last move rather than guess
             self.fallbacks += 1
-            return self.model.tension_from_input(planar, self.u_hat_ref + self.last_move)
+            return self.model.tension_from_input(planar, self.lqr.u_hat_ref + self.last_move)
         self.last_move = result.x[0]
-        return self.model.tension_from_input(planar, self.u_hat_ref + result.x[0])
+        return self.model.tension_from_input(planar, self.lqr.u_hat_ref + result.x[0])
 
 
 class FractionalOrderPd:

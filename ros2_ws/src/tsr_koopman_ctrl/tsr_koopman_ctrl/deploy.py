@@ -104,7 +104,7 @@ def watch(sim, others, timeout, run_dir):
         time.sleep(0.1)
 
 
-def summarise(run_dir, bag_path, controller, x0):
+def summarise(run_dir, bag_path, controller, x0, planned_steps):
     """Figures of a run read back from its bag (the record, not the processes' memory)."""
     loop = read_loop(bag_path, Scale())
     print(f'[deploy] bag {bag_path}: {loop["report"].summary()}', flush=True)
@@ -113,7 +113,7 @@ def summarise(run_dir, bag_path, controller, x0):
     paper_start = [float(v) for v in x0] == dynamics.PAPER_INITIAL_STATE.tolist()
     frontier = frontier_tau(swing) if paper_start and summary['settle_tau'] else None
     summary.update(controller=controller, x0=[float(v) for v in x0], bag=bag_path,
-                   steps=int(loop['step'][-1]), frontier_tau=frontier,
+                   steps=int(loop['step'][-1]), planned_steps=planned_steps, frontier_tau=frontier,
                    frontier_ratio=frontier and summary['settle_tau'] / frontier,
                    **compute_times(os.path.join(run_dir, 'tsr_controller.log')))
     return summary, (loop['tau'], loop['x'], loop['u'][:-1])
@@ -169,8 +169,7 @@ def deploy_one(args):
     name = f'deploy_{args.controller}_{stamp()}'
     run_dir = os.path.join(args.out, name)
     bag_path = run(args, args.controller, args.x0, run_dir, name)
-    summary, loop = summarise(run_dir, bag_path, args.controller, args.x0)
-    summary['planned_steps'] = args.steps
+    summary, loop = summarise(run_dir, bag_path, args.controller, args.x0, args.steps)
     plot_deployments({args.controller: loop}, os.path.join(run_dir, 'deployment.png'),
                      title=f'TSR deployment over DDS: {args.controller}')
     write_report(run_dir, [summary])
@@ -188,8 +187,8 @@ def compare(args):
             name = f'compare_{controller}_x{index}_{stamp()}'
             run_dir = os.path.join(compare_dir, name)
             bag_path = run(args, controller, x0, run_dir, name)
-            summary, runs[controller] = summarise(run_dir, bag_path, controller, x0)
-            summary['planned_steps'] = args.steps
+            summary, runs[controller] = summarise(run_dir, bag_path, controller, x0,
+                                                  args.steps)
             summaries.append(summary)
         plot_deployments(runs, os.path.join(compare_dir, f'x0_{index}.png'),
                          title=f'TSR deployment over DDS from x0 = {x0}')

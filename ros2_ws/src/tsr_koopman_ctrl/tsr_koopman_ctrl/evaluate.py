@@ -19,6 +19,7 @@ import time
 import numpy as np
 
 from tsr_koopman_ctrl import baselines, errors, lifted, model_file
+from tsr_koopman_ctrl.controllers import DEFAULT_MODEL
 from tsr_koopman_ctrl import dataset as datasets
 
 
@@ -123,48 +124,47 @@ def sweep_markdown(rows):
     return '\n'.join(lines) + '\n'
 
 
-def plot_error_vs_step(results, path):
+def log_plot(path, series, xlabel, ylabel, marker=None):
+    """One PNG with a log-y line per (label, x, y) in `series`."""
     import matplotlib
     matplotlib.use('Agg')
     from matplotlib import pyplot
     fig, ax = pyplot.subplots(figsize=(6.4, 4.2))
-    for method, r in results.items():
-        mse = np.asarray(r['mse_per_step'], dtype=float)
-        ax.semilogy(np.arange(1, len(mse)), np.clip(mse[1:], 1e-12, 1e6), label=method)
-    ax.set_xlabel('prediction step (h = 0.01 tau)')
-    ax.set_ylabel('state MSE (clipped to 1e6)')
+    for label, x, y in series:
+        ax.semilogy(x, y, marker=marker, label=label)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     ax.grid(True, which='both', alpha=0.3)
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     pyplot.close(fig)
+
+
+def plot_error_vs_step(results, path):
+    series = []
+    for method, r in results.items():
+        mse = np.asarray(r['mse_per_step'], dtype=float)
+        series.append((method, np.arange(1, len(mse)), np.clip(mse[1:], 1e-12, 1e6)))
+    log_plot(path, series, 'prediction step (h = 0.01 tau)', 'state MSE (clipped to 1e6)')
 
 
 def plot_sweep(rows, key, xlabel, path):
-    import matplotlib
-    matplotlib.use('Agg')
-    from matplotlib import pyplot
-    fig, ax = pyplot.subplots(figsize=(6.4, 4.2))
-    sweep_name = 'lift_dim' if key == 'lift_dim' else 'trajectories'
-    selected = [r for r in rows if r['sweep'] == sweep_name]
+    """Error against `key` ('trajectories' or 'lift_dim', also the sweep's name)."""
+    selected = [r for r in rows if r['sweep'] == key]
+    series = []
     for method in sorted({r['method'] for r in selected}):
         points = sorted((r[key], r['summed_mse']) for r in selected if r['method'] == method)
-        ax.semilogy(*zip(*points), marker='o', label=method)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel('30-step summed state MSE')
-    ax.grid(True, which='both', alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    pyplot.close(fig)
+        series.append((method, *zip(*points)))
+    log_plot(path, series, xlabel, '30-step summed state MSE', marker='o')
 
 
 def parser():
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    p.add_argument('--model', default='models/koopman_default')
+    p.add_argument('--model', default=DEFAULT_MODEL)
     p.add_argument('--out', default='out/evaluation')
     p.add_argument('--test-trajectories', type=int, default=5000)
-    p.add_argument('--test-seed', type=int, default=1_000_003)
+    p.add_argument('--test-seed', type=int, default=datasets.TEST_SEED)
     p.add_argument('--no-sindy', action='store_true', help='skip SINDy (slowest fit)')
     p.add_argument('--sweep', action='store_true', help='also run the size and K sweeps')
     p.add_argument('--sweep-only', action='store_true', help='the sweeps, not the comparison')

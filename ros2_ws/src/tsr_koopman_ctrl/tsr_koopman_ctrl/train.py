@@ -219,7 +219,7 @@ def parser():
                    help='weight of the equilibrium drift loss (not in the paper; default 0)')
     p.add_argument('--data-seed', type=int, default=0)
     p.add_argument('--test-trajectories', type=int, default=5000)
-    p.add_argument('--test-seed', type=int, default=1_000_003)
+    p.add_argument('--test-seed', type=int, default=datasets.TEST_SEED)
     p.add_argument('--epochs', type=int)
     p.add_argument('--lift-dim', type=int, help='K, the number of learned observables')
     p.add_argument('--batch-size', type=int)
