@@ -17,8 +17,8 @@ import numpy as np
 from rclpy.node import Node
 from tsr_msgs.msg import TensionCommand, TsrState
 from tsr_sim import dynamics
-from tsr_sim.ros_io import (declare, declare_scale, LOOP_QOS, msg_to_state, run_node,
-                            STATE_TOPIC, TENSION_TOPIC, tension_msg)
+from tsr_sim.ros_io import (declare, declare_scale, LOOP_PUBLISHER_QOS, LOOP_QOS, msg_to_state,
+                            run_node, STATE_TOPIC, TENSION_TOPIC, tension_msg)
 
 from tsr_koopman_ctrl.controllers import (CONTROLLERS, DEFAULT_MODEL, make_controller,
                                           TensionLimiter)
@@ -56,7 +56,7 @@ class ControllerNode(Node):
         self.last_state_wall = time.monotonic()
         self.last_step = 0
         self.compute_seconds = deque(maxlen=100_000)
-        self.pub = self.create_publisher(TensionCommand, TENSION_TOPIC, LOOP_QOS)
+        self.pub = self.create_publisher(TensionCommand, TENSION_TOPIC, LOOP_PUBLISHER_QOS)
         self.create_subscription(TsrState, STATE_TOPIC, self.on_state, LOOP_QOS)
         self.create_timer(self.state_timeout, self.check_state_timeout)
         self.get_logger().info(f'{name} controller, clamp [0, {max_tension:.4g}] N')

@@ -25,6 +25,12 @@ RESET_SERVICE = 'tsr/reset'
 #: State and command: reliable, so lockstep never loses a step; shallow, so no backlog builds.
 LOOP_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                       history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+#: Publishers of the loop keep their last 10 messages for late joiners: a recorder whose reader
+#: matches a moment after the first steps (discovery is not symmetric) still records step 0.
+#: Loop subscribers stay volatile (LOOP_QOS): a controller or simulator must not act on history.
+LOOP_PUBLISHER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                                history=HistoryPolicy.KEEP_LAST,
+                                durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Status: a late joiner gets the last one.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST,

@@ -23,8 +23,9 @@ from tsr_msgs.srv import ResetSim
 
 from tsr_sim import dynamics
 from tsr_sim.plant import Plant, PlantConfig, Status
-from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_QOS, RESET_SERVICE, run_node,
-                            state_to_msg, STATE_TOPIC, STATUS_TOPIC, TENSION_TOPIC)
+from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_PUBLISHER_QOS, LOOP_QOS,
+                            RESET_SERVICE, run_node, state_to_msg, STATE_TOPIC, STATUS_TOPIC,
+                            TENSION_TOPIC)
 
 
 class SimNode(Node):
@@ -55,7 +56,7 @@ class SimNode(Node):
                                       'shut the node down when max_steps is reached or the '
                                       'state leaves the domain')
 
-        self.state_pub = self.create_publisher(TsrState, STATE_TOPIC, LOOP_QOS)
+        self.state_pub = self.create_publisher(TsrState, STATE_TOPIC, LOOP_PUBLISHER_QOS)
         self.status_pub = self.create_publisher(SimStatus, STATUS_TOPIC, LATCHED_QOS)
         self.clock_pub = self.create_publisher(Clock, '/clock', 10)
         self.create_subscription(TensionCommand, TENSION_TOPIC, self.on_command, LOOP_QOS)
