@@ -26,3 +26,20 @@ def test_bad_parameters_fail_at_start_with_one_line(domain_id):
                                 capture_output=True, text=True, timeout=30)
         assert result.returncode == 2, result.stderr
         assert result.stderr.startswith('cannot start:') and 'Traceback' not in result.stderr
+
+
+def test_controller_example_params_close_the_loop_with_the_shipped_model(ros, start_node):
+    from tsr_msgs.msg import SimStatus
+    from tsr_sim import ros_io
+    params = os.path.join(ROOT, 'ros2_ws/src/tsr_koopman_ctrl/config/controller.yaml')
+    shipped = os.path.join(ROOT, 'models', 'koopman_default')
+    start_node('tsr_sim', 'sim_node', 'tsr_sim', {'max_steps': 50, 'progress_every': 0})
+    start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
+               extra_args=['--params-file', params, '-p', f'model:={shipped}'])
+    seen = []
+    ros.node.create_subscription(SimStatus, ros_io.STATUS_TOPIC, seen.append,
+                                 ros_io.LATCHED_QOS)
+    ros.spin_until(lambda: seen and seen[-1].commands_accepted >= 50, timeout=30.0,
+                   what='50 koopman_mpc commands accepted by the simulator')
+    last = seen[-1]
+    assert last.rejected_non_finite + last.rejected_negative + last.rejected_over_limit == 0

@@ -207,11 +207,12 @@ def test_train_cli_rejects_bad_data_with_one_line(tmp_path, capsys):
     assert err.startswith('train: ') and 'x.npz' in err and '\n' not in err
 
 
-SHIPPED = pathlib.Path(__file__).resolve().parents[1] / 'models' / 'koopman_default'
+MODELS = pathlib.Path(__file__).resolve().parents[1] / 'models'
 
 
-def test_shipped_model_error_on_fresh_data_stays_under_its_record():
-    model = lifted.LiftedModel.load(SHIPPED)
+@pytest.mark.parametrize('name', ['koopman_default', 'koopman_paper'])
+def test_shipped_model_error_on_fresh_data_stays_under_its_record(name):
+    model = lifted.LiftedModel.load(MODELS / name)
     recorded = model.metadata['metrics']['test']['summed_mse']
     fresh, _ = datasets.sample(datasets.SamplingConfig(trajectories=2000, seed=424242))
     result = errors.multistep_errors(model.predict(fresh.x[:, 0], fresh.u), fresh.x)
@@ -275,3 +276,52 @@ def test_equilibrium_loss_pins_the_reference_as_a_fixed_point(small_data):
         with torch.no_grad():
             drifts.append(koopman_model.equilibrium_drift(net).item())
     assert drifts[1] < 0.2 * drifts[0], drifts
+
+
+@pytest.fixture(scope='module')
+def anchored_model(small_data):
+    config = dataclasses.replace(TINY, anchor_equilibrium=True, weight_one_step=1.0, epochs=2)
+    net = train.Trainer(config, progress=False).fit(small_data)
+    return net, lifted.LiftedModel(net.to_numpy(), config)
+
+
+def test_anchored_model_has_the_equilibrium_as_exact_fixed_point(anchored_model, small_data):
+    net, numpy_model = anchored_model
+    origin = np.zeros(4)
+    np.testing.assert_allclose(numpy_model.psi_x(origin), 0.0, atol=1e-12)
+    assert float(numpy_model.psi_u(origin, dynamics.EQUILIBRIUM_TENSION)) == pytest.approx(
+        0.0, abs=1e-12)
+    with torch.no_grad():
+        assert koopman_model.equilibrium_drift(net).item() < 1e-10
+        x0 = torch.as_tensor(small_data.x[:20, 0], dtype=torch.float32)
+        expected = net.predict(x0, torch.as_tensor(small_data.u[:20], dtype=torch.float32))
+    # The numpy model folds the anchor into its biases; both must predict the same.
+    np.testing.assert_allclose(numpy_model.predict(small_data.x[:20, 0], small_data.u[:20]),
+                               expected.numpy(), atol=2e-4, rtol=1e-4)
+
+
+def test_one_step_error_is_relative_to_the_increment(anchored_model, small_data):
+    net, numpy_model = anchored_model
+    x = torch.as_tensor(small_data.x[:64], dtype=torch.float32)
+    u = torch.as_tensor(small_data.u[:64], dtype=torch.float32)
+    with torch.no_grad():
+        loss = koopman_model.one_step_error(net, net.psi_x(x), x, u).item()
+    # The same figure from the numpy model and numpy's own std of the increments.
+    now, after = small_data.x[:64, :-1], small_data.x[:64, 1:]
+    z = numpy_model.psi_x(now)
+    predicted = (z @ numpy_model.A[:4].T
+                 + numpy_model.psi_u(now, small_data.u[:64])[..., None] * numpy_model.B[:4].T)
+    scale = (after - now).reshape(-1, 4).std(axis=0, ddof=1)
+    assert loss == pytest.approx(np.mean(((predicted - after) / scale) ** 2), rel=1e-3)
+
+
+def test_one_step_loss_lowers_the_one_step_error(small_data):
+    errors_by_weight = []
+    x = torch.as_tensor(small_data.x, dtype=torch.float32)
+    u = torch.as_tensor(small_data.u, dtype=torch.float32)
+    for weight in (0.0, 1.0):
+        config = dataclasses.replace(TINY, weight_one_step=weight)
+        net = train.Trainer(config, progress=False).fit(small_data)
+        with torch.no_grad():
+            errors_by_weight.append(koopman_model.one_step_error(net, net.psi_x(x), x, u).item())
+    assert errors_by_weight[1] < 0.5 * errors_by_weight[0], errors_by_weight

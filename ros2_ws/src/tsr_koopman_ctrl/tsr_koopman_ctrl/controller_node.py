@@ -35,8 +35,14 @@ class ControllerNode(Node):
         r = declare(self, 'lqr_r', 15.0, "koopman_lqr: R' (paper: 15)", 1e-9, 1e9)
         state_weight = declare(self, 'lqr_state_weight', 'lifted',
                                "koopman_lqr: Q' = I ('lifted', paper) or C^T C ('state')")
+        horizon = declare(self, 'mpc_horizon', 5, 'koopman_mpc: prediction steps', 1, 200)
+        theta_max = declare(self, 'mpc_theta_max', 0.8, 'koopman_mpc: soft bound on |theta| '
+                            '[rad]', 0.01, 3.2)
+        overshoot_max = declare(self, 'mpc_overshoot_max', 0.05, 'koopman_mpc: soft bound on '
+                                'l - 1 (fraction of the tether length)', 0.0, 10.0)
         options = {'koopman_lqr': {'model': model, 'r': r, 'state_weight': state_weight},
-                   'koopman_mpc': {'model': model}}.get(name, {})   # MPC: its own defaults
+                   'koopman_mpc': {'model': model, 'horizon': horizon, 'theta_max': theta_max,
+                                   'overshoot_max': overshoot_max}}.get(name, {})
         self.controller = make_controller(name, **options)
         self.scale = declare_scale(self)
         max_tension = declare(self, 'max_tension', self.scale.u_to_tension(5.0),

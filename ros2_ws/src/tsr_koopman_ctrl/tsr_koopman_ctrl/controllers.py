@@ -46,27 +46,18 @@ class KoopmanLqr:
     """Koopman-LQR (paper Section III-C): discrete LQR on the learned lifted system (A, B).
 
     u_hat = u_hat_d - K (psi_x(x) - z_d) with z_d = psi_x(0), u_hat_d = psi_u(0, 3), K from the
-    discrete Riccati equation with Q' = I (``state_weight='lifted'``, the paper) or C^T C
-    (``'state'``) and R' = `r` (15 in the paper); u = psi_uu^-1(u_hat / psi_ux(x)).
+    discrete Riccati equation with Q' = I (``state_weight='lifted'``, the paper's setting),
+    C^T C (``'state'``, the paper's formula Q' = C^T Q C with Q = I) or C^T diag(q) C (four
+    numbers), and R' = `r` (15 in the paper); u = psi_uu^-1(u_hat / psi_ux(x)).
     """
 
     name = 'koopman_lqr'
 
     def __init__(self, model=DEFAULT_MODEL, r=15.0, state_weight='lifted'):
-        self.model = model if isinstance(model, lifted.LiftedModel) \
-            else lifted.LiftedModel.load(model)
-        a, b, c = self.model.A, self.model.B, self.model.C
-        weights = {'lifted': np.eye(a.shape[0]), 'state': c.T @ c}
-        if state_weight not in weights:
-            raise ValueError(f'state_weight must be one of {sorted(weights)}, got '
-                             f'{state_weight!r}')
-        if not r > 0.0:
-            raise ValueError(f'R must be > 0, got {r}')
-        self.q = weights[state_weight]
-        self.gain, self.riccati = discrete_lqr_gain(a, b, self.q, r)
-        origin = dynamics.equilibrium_state(self.model.n)
-        self.z_ref = self.model.psi_x(origin)
-        self.u_hat_ref = float(self.model.psi_u(origin, dynamics.EQUILIBRIUM_TENSION))
+        self.model = load_model(model)
+        self.q = lifted_state_weight(self.model, state_weight)
+        self.gain, self.riccati = discrete_lqr_gain(self.model.A, self.model.B, self.q, r)
+        self.z_ref, self.u_hat_ref = lifted_reference(self.model)
 
     def reset(self):
         pass
@@ -86,85 +77,94 @@ class KoopmanMpc:
 
     Decision: the lifted inputs v_j = u_hat_j - u_hat_d over `horizon` steps and one slack s.
     Predictions e_k = z_k - z_d follow e+ = A e + B v + d, with d = A z_d + B u_hat_d - z_d the
-    model's own drift at the reference (so an imperfect fixed point is accounted for, not
-    ignored). Cost: sum e'Qe (Q = C^T C, 'state', or I, 'lifted'), terminal weight Q ('stage')
-    or the DARE's P ('riccati': with no active constraint and input_cost 'level' the first move
-    is then the Koopman-LQR move), plus the input cost: r sum v_j^2 ('level') or
-    r sum (v_j - v_(j-1))^2 with v_(-1) the last move ('rate', which does not pull the steady
-    tension towards u_hat_d), plus `slack_weight` (s + s^2).
-    Constraints: 0 <= u <= u_max, mapped to bounds on u_hat with psi_ux frozen at the measured
-    state (psi_uu is increasing); |theta_k| = |C_theta z_k| <= theta_max + s, soft so the QP is
-    always feasible. Only q and the bounds change per step: one OSQP setup, warm-started.
+    model's own drift at the reference (zero for a model trained with `anchor_equilibrium`).
+    Cost: sum e'Q'e over the horizon (Q' as in `KoopmanLqr`; default C^T C), the terminal
+    weight, the input cost and `slack_weight` (s + s^2). Terminal weight:
+
+    - 'local' (default): C^T P C, P the DARE solution for the model's own linearisation at the
+      reference (`LiftedModel.local_linear_model`): a cost-to-go beyond the horizon, read off
+      the learned model. Without one a short horizon is myopic: even on the exact
+      linearisation the loop then stalls short of the target.
+    - 'riccati': the lifted DARE's P (with no active constraint and input_cost 'level' the first
+      move is the Koopman-LQR move); as ill-conditioned as Koopman-LQR on a learned model.
+    - 'stage': Q'.
+
+    Input cost: r sum v_j^2 ('level', the LQR's) or r sum (v_j - v_(j-1))^2 with v_(-1) the last
+    move ('rate'). Constraints: 0 <= u <= u_max, mapped to bounds on u_hat with psi_ux frozen at
+    the measured state (psi_uu is increasing); |theta_k| <= theta_max + s and
+    l_k - 1 <= overshoot_max + s (the tether is finite), read through C z_k and soft so the QP
+    is always feasible. Only q and the bounds change per step: one OSQP setup, warm-started.
     If OSQP does not report "solved" the last move is repeated and `fallbacks` counted.
 
-    Defaults (Q = C^T C, 'rate' with r = 100, terminal Q, 30 steps, |theta| <= 0.8) are the
-    best of our trials with the shipped model (README): from four starts the tether reaches
-    l ~ 0.94 with theta ~ 0, but the model's bias leaves it outside the 1% zone. With the
-    paper's Q' = I and the DARE terminal weight the loop diverges like Koopman-LQR.
+    The default horizon is short (5 steps, 0.05 tau) on purpose: the learned model's one-step
+    map is accurate near the path but its 30-step predictions carry errors that, re-planned
+    every step, stall or tumble the deployment (README: horizon sweep); the local terminal
+    cost carries the long-term goal.
     """
 
     name = 'koopman_mpc'
 
-    def __init__(self, model=DEFAULT_MODEL, horizon=30, r=100.0, state_weight='state',
-                 u_max=5.0, theta_max=0.8, slack_weight=1e4, terminal='stage',
-                 input_cost='rate'):
+    def __init__(self, model=DEFAULT_MODEL, horizon=5, r=1.0, state_weight='state',
+                 u_max=5.0, theta_max=0.8, overshoot_max=0.05, slack_weight=1e4,
+                 terminal='local', input_cost='level'):
         import osqp
         import scipy.sparse as sparse
-        self.lqr = KoopmanLqr(model, r, state_weight)
-        self.model, self.horizon, self.u_max = self.lqr.model, int(horizon), float(u_max)
-        self.theta_max = float(theta_max)
-        a, b, q = self.model.A, self.model.B, self.lqr.q
-        terminals = {'riccati': self.lqr.riccati, 'stage': q}
-        if terminal not in terminals:
-            raise ValueError(f'terminal must be one of {sorted(terminals)}, got {terminal!r}')
-        p_terminal = terminals[terminal]
-        nz, n_steps = a.shape[0], self.horizon
-        powers = [np.eye(nz)]
-        for _ in range(n_steps):
-            powers.append(a @ powers[-1])
-        self.free = np.vstack(powers[1:])                    # e_k from e_0, k = 1..N
-        self.forced = np.zeros((n_steps * nz, n_steps))      # e_k from v_j
-        self.drift_gain = np.zeros((n_steps * nz, nz))       # e_k from the drift d
-        for k in range(1, n_steps + 1):
-            rows = slice((k - 1) * nz, k * nz)
-            for j in range(k):
-                self.forced[rows, j] = (powers[k - 1 - j] @ b)[:, 0]
-            self.drift_gain[rows] = sum(powers[:k])
-        weights = [q] * (n_steps - 1) + [p_terminal]
-        self.q_bar = scipy.linalg.block_diag(*weights)
-        # 'level': r sum v_j^2 (the LQR's cost); 'rate': r sum (v_j - v_(j-1))^2 with v_(-1) the
-        # last move, which does not tie the steady state to u_hat_d.
+        self.model, self.horizon, self.u_max = load_model(model), int(horizon), float(u_max)
+        self.theta_max, self.overshoot_max = float(theta_max), float(overshoot_max)
+        if self.horizon < 1 or not self.u_max > 0.0 or not r > 0.0:
+            raise ValueError('horizon must be >= 1, u_max and r > 0')
         if input_cost not in ('level', 'rate'):
             raise ValueError(f"input_cost must be 'level' or 'rate', got {input_cost!r}")
+        a, b = self.model.A, self.model.B
+        q = lifted_state_weight(self.model, state_weight)
+        self.z_ref, self.u_hat_ref = lifted_reference(self.model)
+        n_steps = self.horizon
+        weights = [q] * (n_steps - 1) + [self.terminal_weight(terminal, q, r)]
+        self.q_bar = scipy.linalg.block_diag(*weights)
+        self.free, self.forced, self.drift_gain = prediction_matrices(a, b, n_steps)
+        self.drift = a @ self.z_ref + b[:, 0] * self.u_hat_ref - self.z_ref
         self.rate_weight = r if input_cost == 'rate' else 0.0
         difference = np.eye(n_steps) - np.eye(n_steps, k=-1)
         input_weight = difference.T @ difference if input_cost == 'rate' else np.eye(n_steps)
         hessian = self.forced.T @ self.q_bar @ self.forced + r * input_weight
-        theta_rows = self.forced[dynamics.THETA::nz]         # theta_k from v (N, N)
-        slack = np.zeros((n_steps, 1))
+        theta_rows = self.forced[dynamics.THETA::a.shape[0]]   # theta_k from v (N, N)
+        length_rows = self.forced[dynamics.LENGTH_OFFSET::a.shape[0]]
+        slack, ones = np.zeros((n_steps, 1)), np.ones((n_steps, 1))
         constraints = np.block([[np.eye(n_steps), slack],
-                                [theta_rows, np.ones((n_steps, 1))],
-                                [theta_rows, -np.ones((n_steps, 1))],
+                                [theta_rows, ones],
+                                [theta_rows, -ones],
+                                [length_rows, -ones],
                                 [np.zeros((1, n_steps)), np.ones((1, 1))]])
         full_hessian = scipy.linalg.block_diag(2.0 * hessian, [[2.0 * slack_weight]])
         self.slack_weight = slack_weight
-        self.drift = a @ self.lqr.z_ref + b[:, 0] * self.lqr.u_hat_ref - self.lqr.z_ref
         self.reset()
         self.solver = osqp.OSQP()
         self.solver.setup(sparse.triu(full_hessian, format='csc'), np.zeros(n_steps + 1),
                           sparse.csc_matrix(constraints),
-                          *self.bounds(np.zeros(n_steps * nz), -1.0, 1.0),
+                          *self.bounds(np.zeros(n_steps * a.shape[0]), -1.0, 1.0),
                           verbose=False, warm_starting=True, eps_abs=1e-6, eps_rel=1e-6,
                           max_iter=4000, polishing=True)
 
+    def terminal_weight(self, terminal, q, r):
+        if terminal == 'stage':
+            return q
+        if terminal == 'riccati':
+            return discrete_lqr_gain(self.model.A, self.model.B, q, r)[1]
+        if terminal == 'local':
+            c = self.model.C
+            jacobian, b_x = self.model.local_linear_model()
+            return c.T @ discrete_lqr_gain(jacobian, b_x, c @ q @ c.T, r)[1] @ c
+        raise ValueError(f"terminal must be 'local', 'riccati' or 'stage', got {terminal!r}")
+
     def bounds(self, predicted, u_hat_low, u_hat_high):
         """OSQP's l, u for the free (v = 0) prediction `predicted` of e_1..e_N."""
-        n_steps = self.horizon
-        theta = predicted[dynamics.THETA::self.model.A.shape[0]] + self.lqr.z_ref[dynamics.THETA]
-        low = np.r_[np.full(n_steps, u_hat_low), -self.theta_max - theta,
-                    np.full(n_steps, -np.inf), 0.0]
-        high = np.r_[np.full(n_steps, u_hat_high), np.full(n_steps, np.inf),
-                     self.theta_max - theta, np.inf]
+        n_steps, nz = self.horizon, self.model.A.shape[0]
+        theta = predicted[dynamics.THETA::nz] + self.z_ref[dynamics.THETA]
+        length = predicted[dynamics.LENGTH_OFFSET::nz] + self.z_ref[dynamics.LENGTH_OFFSET]
+        none = np.full(n_steps, np.inf)
+        low = np.r_[np.full(n_steps, u_hat_low), -self.theta_max - theta, -none, -none, 0.0]
+        high = np.r_[np.full(n_steps, u_hat_high), none, self.theta_max - theta,
+                     self.overshoot_max - length, np.inf]
         return low, high
 
     def reset(self):
@@ -173,22 +173,65 @@ class KoopmanMpc:
 
     def compute(self, x):
         planar = np.asarray(x, dtype=float)[:self.model.n]
-        e0 = self.model.psi_x(planar) - self.lqr.z_ref
+        e0 = self.model.psi_x(planar) - self.z_ref
         gain = float(self.model.psi_ux(planar))
         input_map = self.model.input_map
-        u_hat_low = gain * float(input_map(0.0)) - self.lqr.u_hat_ref
-        u_hat_high = gain * float(input_map(self.u_max)) - self.lqr.u_hat_ref
+        u_hat_low = gain * float(input_map(0.0)) - self.u_hat_ref
+        u_hat_high = gain * float(input_map(self.u_max)) - self.u_hat_ref
         predicted = self.free @ e0 + self.drift_gain @ self.drift
         linear = np.r_[2.0 * self.forced.T @ self.q_bar @ predicted, self.slack_weight]
         linear[0] -= 2.0 * self.rate_weight * self.last_move
         low, high = self.bounds(predicted, u_hat_low, u_hat_high)
         self.solver.update(q=linear, l=low, u=high)
         result = self.solver.solve(raise_error=False)
-        if result.info.status_val != 1:   # keep the last move rather than guess
+        if result.info.status_val == 1:   # else keep the last move rather than guess
+            self.last_move = result.x[0]
+        else:
             self.fallbacks += 1
-            return self.model.tension_from_input(planar, self.lqr.u_hat_ref + self.last_move)
-        self.last_move = result.x[0]
-        return self.model.tension_from_input(planar, self.lqr.u_hat_ref + result.x[0])
+        return self.model.tension_from_input(planar, self.u_hat_ref + self.last_move)
+
+
+def load_model(model):
+    """A LiftedModel as given, or loaded from a model directory."""
+    return model if isinstance(model, lifted.LiftedModel) else lifted.LiftedModel.load(model)
+
+
+def lifted_state_weight(model, state_weight):
+    """Q' on the lifted state: 'lifted' (I), 'state' (C^T C) or C^T diag(q) C for q of n."""
+    c = model.C
+    if isinstance(state_weight, str):
+        weights = {'lifted': np.eye(c.shape[1]), 'state': c.T @ c}
+        if state_weight not in weights:
+            raise ValueError(f"state_weight must be 'lifted', 'state' or {c.shape[0]} weights, "
+                             f'got {state_weight!r}')
+        return weights[state_weight]
+    q = np.asarray(state_weight, dtype=float)
+    if q.shape != (c.shape[0],) or not np.all(q >= 0.0):
+        raise ValueError(f'state weights must be {c.shape[0]} numbers >= 0, got {state_weight!r}')
+    return c.T @ np.diag(q) @ c
+
+
+def lifted_reference(model):
+    """(z_d, u_hat_d) = (psi_x(0), psi_u(0, 3)): the deployed equilibrium, lifted."""
+    origin = dynamics.equilibrium_state(model.n)
+    return model.psi_x(origin), float(model.psi_u(origin, dynamics.EQUILIBRIUM_TENSION))
+
+
+def prediction_matrices(a, b, steps):
+    """e_1..e_N stacked = free e_0 + forced v + drift_gain d for e+ = A e + B v + d."""
+    nz = a.shape[0]
+    powers = [np.eye(nz)]
+    for _ in range(steps):
+        powers.append(a @ powers[-1])
+    free = np.vstack(powers[1:])
+    forced = np.zeros((steps * nz, steps))
+    drift_gain = np.zeros((steps * nz, nz))
+    for k in range(1, steps + 1):
+        rows = slice((k - 1) * nz, k * nz)
+        for j in range(k):
+            forced[rows, j] = (powers[k - 1 - j] @ b)[:, 0]
+        drift_gain[rows] = sum(powers[:k])
+    return free, forced, drift_gain
 
 
 class FractionalOrderPd:
@@ -232,6 +275,8 @@ class FractionalOrderPd:
 
 def discrete_lqr_gain(a, b, q, r):
     """K (N,) of u = -K z for z+ = A z + B u minimising sum z'Qz + r u^2, and the DARE's P."""
+    if not r > 0.0:
+        raise ValueError(f'R must be > 0, got {r}')
     r = np.atleast_2d(float(r))
     try:
         p = scipy.linalg.solve_discrete_are(a, b, q, r)

@@ -26,11 +26,9 @@ from tsr_sim.units import Scale
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.controllers import CONTROLLERS, DEFAULT_MODEL
 from tsr_koopman_ctrl.launcher import NodeProcess
-from tsr_koopman_ctrl.metrics import deployment_summary, frontier_tau
+from tsr_koopman_ctrl.metrics import deployment_summary, frontier_tau, OTHER_INITIAL_STATES
 from tsr_koopman_ctrl.plots import plot_deployments
 
-
-OTHER_INITIAL_STATES = ([0.0, 0.0, -0.9, 0.3], [0.0, 0.0, -0.95, 1.0], [0.0, 0.0, -0.7, 0.0])
 COMPUTE_LINE = re.compile(r'compute median ([0-9.]+) us, p99 ([0-9.]+) us')
 
 
@@ -180,7 +178,8 @@ def compare(args):
     """Every controller from every start, each a full three-process deployment over DDS."""
     compare_dir = os.path.join(args.out, f'compare_{stamp()}')
     summaries = []
-    starts = [[float(v) for v in dynamics.PAPER_INITIAL_STATE], *OTHER_INITIAL_STATES]
+    initial_states = (dynamics.PAPER_INITIAL_STATE, *OTHER_INITIAL_STATES)
+    starts = [[float(v) for v in x0] for x0 in initial_states]
     for index, x0 in enumerate(starts):
         runs = {}
         for controller in sorted(CONTROLLERS):

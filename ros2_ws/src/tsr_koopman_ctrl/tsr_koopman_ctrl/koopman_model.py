@@ -79,14 +79,24 @@ class DeepKoopman(nn.Module):
         return (x - self.state_mean) / self.state_std
 
     def psi_x(self, x):
-        return torch.cat([x, self.lift(self.normalise(x))], dim=-1)
+        phi = self.lift(self.normalise(x))
+        if self.config.anchor_equilibrium:
+            phi = phi - self.lift(self.normalise(torch.zeros_like(self.state_mean)))
+        return torch.cat([x, phi], dim=-1)
 
     def psi_ux(self, x):
         raw = self.input_gain(self.normalise(x))[..., 0]
         return self.config.min_input_gain + nn.functional.softplus(raw)
 
+    def psi_uu(self, u):
+        value = self.input_map(u)
+        if self.config.anchor_equilibrium:
+            tension = torch.full((), dynamics.EQUILIBRIUM_TENSION, device=value.device)
+            value = value - self.input_map(tension)
+        return value
+
     def psi_u(self, x, u):
-        return self.psi_ux(x) * self.input_map(u)
+        return self.psi_ux(x) * self.psi_uu(u)
 
     def rollout(self, z0, u):
         """Lifted predictions (B, T + 1, K + n) from z0 (B, K + n) under u (B, T)."""
@@ -132,7 +142,20 @@ def loss_terms(model, x, u):
     lifted = ((state_error.mean(dim=(0, 2)) * n + phi_error * config.lift_dim)
               / config.lifted_dim * weights).sum()
     return (reconstruction, lifted, controllability_loss(model.A, model.B, config),
-            equilibrium_drift(model))
+            equilibrium_drift(model), one_step_error(model, z_true, x, u))
+
+
+def one_step_error(model, z_true, x, u):
+    """Relative one-step error of the state read off z_(k+1) = A psi_x(x_k) + B psi_u(x_k, u_k),
+    from every measured state of the batch: the step a feedback controller takes, since it lifts
+    each new measurement. Each component is scaled by the batch std of its one-step increment
+    (no gradient through it): 1 means no better than predicting no change."""
+    n = model.config.state_dim
+    x_now, x_next = x[:, :-1], x[:, 1:]
+    predicted = (z_true[:, :-1] @ model.A[:n].T
+                 + model.psi_u(x_now, u).unsqueeze(-1) * model.B[:n].T)
+    increment_std = (x_next - x_now).std(dim=(0, 1)).detach() + 1e-9
+    return (((predicted - x_next) / increment_std) ** 2).mean()
 
 
 def equilibrium_drift(model):
@@ -159,11 +182,11 @@ def controllability_loss(a, b, config):
 
 
 def total_loss(model, x, u):
-    rec, lift, ctrb, eq = loss_terms(model, x, u)
+    rec, lift, ctrb, eq, step = loss_terms(model, x, u)
     config = model.config
     total = (config.weight_reconstruction * rec + config.weight_lifted * lift
-             + config.weight_controllability * ctrb)
-    if config.weight_equilibrium:
-        total = total + config.weight_equilibrium * eq
+             + config.weight_controllability * ctrb + config.weight_equilibrium * eq
+             + config.weight_one_step * step)
     return total, {'reconstruction': rec.item(), 'lifted': lift.item(),
-                   'controllability': ctrb.item(), 'equilibrium': eq.item()}
+                   'controllability': ctrb.item(), 'equilibrium': eq.item(),
+                   'one_step': step.item()}

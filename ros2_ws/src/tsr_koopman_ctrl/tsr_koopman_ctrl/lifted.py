@@ -11,6 +11,7 @@ tests check the two agree. Torch is not needed here: the controller's hot path i
 """
 
 import numpy as np
+from tsr_sim import dynamics
 
 from tsr_koopman_ctrl import model_file
 
@@ -100,8 +101,17 @@ class LiftedModel:
         self.lift = Mlp(tensors, 'lift', config.activation)
         self.input_gain = Mlp(tensors, 'input_gain', config.activation)
         self.input_map = MonotoneMap(tensors, config.tension_range)
+        if config.anchor_equilibrium:
+            self.anchor_at(dynamics.equilibrium_state(self.n), dynamics.EQUILIBRIUM_TENSION)
         self.A, self.B = tensors['A'], tensors['B']
         self.C = np.eye(self.n, config.lifted_dim)
+
+    def anchor_at(self, x, u):
+        """Shift the last biases so Phi(x) = 0 and psi_uu(u) = 0: the torch model's
+        `anchor_equilibrium`, folded into the constants once instead of subtracted per call."""
+        weight, bias = self.lift.layers[-1]
+        self.lift.layers[-1] = (weight, bias - self.lift((x - self.mean) / self.std))
+        self.input_map.offset -= float(self.input_map(u))
 
     @classmethod
     def load(cls, directory):
@@ -132,6 +142,15 @@ class LiftedModel:
             z = z @ self.A.T + self.psi_u(z[:, :self.n], u[:, k])[:, None] * self.B.T
             states.append(z[:, :self.n])
         return np.stack(states, axis=1)
+
+    def local_linear_model(self, x=None, eps=1e-6):
+        """(J, B_x): the state part of the lifted model's one-step map linearised at x (default:
+        the equilibrium) in the lifted input, x+ ~ J x + B_x u_hat; J = A_x dpsi_x/dx by
+        central differences."""
+        x = dynamics.equilibrium_state(self.n) if x is None else np.asarray(x, dtype=float)
+        steps = eps * np.eye(self.n)
+        dpsi = (self.psi_x(x + steps) - self.psi_x(x - steps)).T / (2.0 * eps)
+        return self.A[:self.n] @ dpsi, self.B[:self.n]
 
     def controllability_rank(self):
         return controllability_rank(self.A, self.B)

@@ -9,6 +9,10 @@ from tsr_sim.dynamics import LENGTH_OFFSET, THETA
 
 ZONE = 0.01
 
+#: Starts of the comparison besides the paper's x0 = [0, 0, -0.99, 0.5]: other initial lengths
+#: and deployment rates.
+OTHER_INITIAL_STATES = ((0.0, 0.0, -0.9, 0.3), (0.0, 0.0, -0.95, 1.0), (0.0, 0.0, -0.7, 0.0))
+
 #: Minimum-time deployment from the paper's x0 with 0 <= u <= 5 against the largest |theta|
 #: allowed (../shared/TSR_PHYSICS.md; 1.05 rad is where the unconstrained optimum swings).
 #: Below 0.4 rad only the u >= 0 figures exist (20.5 tau at 0.2, 11.7 at 0.3): lower bounds.

@@ -54,6 +54,13 @@ class KoopmanConfig:
     #: Not in the paper: weight of L_eq, the drift of the lifted model at the known equilibrium
     #: (x = 0, u = 3), per unit tau: z_d = psi_x(0) must be a fixed point for LQR about it.
     weight_equilibrium: float = 0.0
+    #: Not in the paper: Phi(x) - Phi(0) and psi_uu(u) - psi_uu(3) in place of Phi and psi_uu,
+    #: so z = 0 is psi_x(0) and u_hat = 0 is psi_u(0, 3): the known equilibrium is an exact
+    #: fixed point of the lifted model (no drift at the state LQR and MPC regulate to).
+    anchor_equilibrium: bool = False
+    #: Not in the paper: weight of L_step, the relative one-step error from every measured state
+    #: (what a controller that lifts each measurement relies on).
+    weight_one_step: float = 0.0
     gamma: float = 1.0 - 1e-3
     #: L_ctrb is near zero once every normalised singular value of the controllability matrix
     #: is well above this (a differentiable stand-in for "full rank"; rank reported separately).

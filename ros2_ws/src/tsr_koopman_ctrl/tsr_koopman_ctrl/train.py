@@ -112,7 +112,7 @@ class Trainer:
         if self.progress:
             print(f"epoch {epoch + 1:3d}: rec {train_losses['reconstruction']:.3e} "
                   f"lift {train_losses['lifted']:.3e} ctrb {train_losses['controllability']:.3e}"
-                  f" eq {train_losses['equilibrium']:.2e}"
+                  f" eq {train_losses['equilibrium']:.2e} step {train_losses['one_step']:.2e}"
                   f"  val 30-step summed MSE {metrics['summed_mse']:.3e}"
                   + ('  (best)' if improved else ''), flush=True)
 
@@ -202,6 +202,8 @@ def test_set(trajectories, seed):
 
 def config_from_args(args):
     overrides = {'epochs': args.epochs, 'weight_equilibrium': args.weight_equilibrium,
+                 'weight_one_step': args.weight_one_step,
+                 'anchor_equilibrium': args.anchor_equilibrium or None,
                  'lift_dim': args.lift_dim, 'seed': args.seed, 'batch_size': args.batch_size,
                  'learning_rate': args.learning_rate}
     return model_file.KoopmanConfig(**{k: v for k, v in overrides.items() if v is not None})
@@ -217,6 +219,12 @@ def parser():
                    help='extra trajectories from a box around x = 0 (not in the paper)')
     p.add_argument('--weight-equilibrium', type=float,
                    help='weight of the equilibrium drift loss (not in the paper; default 0)')
+    p.add_argument('--weight-one-step', type=float,
+                   help='weight of the one-step error from every measured state (not in the '
+                   'paper; default 0)')
+    p.add_argument('--anchor-equilibrium', action='store_true',
+                   help='make x = 0, u = 3 an exact fixed point of the lifted model (not in the '
+                   'paper)')
     p.add_argument('--data-seed', type=int, default=0)
     p.add_argument('--test-trajectories', type=int, default=5000)
     p.add_argument('--test-seed', type=int, default=datasets.TEST_SEED)
