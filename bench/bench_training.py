@@ -50,6 +50,8 @@ def main():
     print(f"time to the shipped model's validation error (best at epoch {best_epoch}): "
           f'~{best_epoch * epoch_s / 60:.1f} min (recorded while training: '
           f"{meta['training_seconds'] / 60:.1f} min for {config.epochs} epochs)")
+    if 'training_note' in meta:   # e.g. trained partly elsewhere and resumed here
+        print(f"note on the recorded time: {meta['training_note']}")
 
 
 if __name__ == '__main__':

@@ -146,3 +146,22 @@ def test_mpc_with_the_local_terminal_cost_moves_like_the_discrete_lqr():
     for x in ([0.01, -0.02, 0.015, 0.005], [-0.05, 0.0, -0.03, 0.02]):
         assert mpc.compute(np.array(x)) == pytest.approx(3.0 - gain @ x, abs=1e-5)
     assert mpc.fallbacks == 0
+
+
+def test_mpc_sweep_runs_each_model_and_horizon_from_every_start(tmp_path, capsys):
+    import json
+    from tsr_koopman_ctrl import mpc_sweep
+    out = tmp_path / 'sweep'
+    assert mpc_sweep.main(['--models', SHIPPED_MODEL, '--horizons', '5', '8', '--steps', '300',
+                           '--out', str(out)]) == 0
+    results = json.loads((out / 'mpc_sweep.json').read_text())
+    assert [r['horizon'] for r in results] == [5, 8]
+    assert all(len(r['runs']) == 1 + len(OTHER_INITIAL_STATES) for r in results)
+    for r in results:   # the paper's start, against a loop closed here
+        states, _ = controllers.closed_loop(controllers.KoopmanMpc(SHIPPED_MODEL,
+                                                                   horizon=r['horizon']),
+                                            dynamics.PAPER_INITIAL_STATE, 300)
+        np.testing.assert_allclose(r['runs'][0]['final_state'], states[-1], atol=1e-12)
+    assert '| 5 |' in (out / 'mpc_sweep.md').read_text()
+    assert mpc_sweep.main(['--models', str(tmp_path / 'none'), '--out', str(out)]) == 2
+    assert 'none: no such model directory' in capsys.readouterr().err

@@ -83,8 +83,8 @@ class KoopmanMpc:
 
     - 'local' (default): C^T P C, P the DARE solution for the model's own linearisation at the
       reference (`LiftedModel.local_linear_model`): a cost-to-go beyond the horizon, read off
-      the learned model. Without one a short horizon is myopic: even on the exact
-      linearisation the loop then stalls short of the target.
+      the learned model. Without one the horizon is myopic: even on the exact linearisation
+      the MPC then holds u near 3, which reels a short tether in.
     - 'riccati': the lifted DARE's P (with no active constraint and input_cost 'level' the first
       move is the Koopman-LQR move); as ill-conditioned as Koopman-LQR on a learned model.
     - 'stage': Q'.

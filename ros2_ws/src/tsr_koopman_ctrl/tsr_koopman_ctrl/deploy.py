@@ -7,8 +7,8 @@ from the bag (the record is the source of the figures, not the processes' memory
     python -m tsr_koopman_ctrl.deploy [--controller koopman_mpc] [--model DIR] [--steps 2000]
                                       [--x0 ...] [--compare]
 
-The default is koopman_mpc on the shipped model (models/koopman_default): of the laws that use
-the learned model it is the one that keeps the deployment inside the domain (README).
+The default is koopman_mpc on the shipped model (models/koopman_default), which deploys into the
+1% zone from the paper's x0 and the comparison's other starts (README).
 """
 
 import argparse
