@@ -165,3 +165,17 @@ def test_mpc_sweep_runs_each_model_and_horizon_from_every_start(tmp_path, capsys
     assert '| 5 |' in (out / 'mpc_sweep.md').read_text()
     assert mpc_sweep.main(['--models', str(tmp_path / 'none'), '--out', str(out)]) == 2
     assert 'none: no such model directory' in capsys.readouterr().err
+
+
+def test_closed_loop_halts_where_the_state_would_leave_the_domain():
+    class ReelIn:   # full tension on a short tether: l reaches 0 within a few tau
+        def reset(self):
+            pass
+
+        def compute(self, x):
+            return 5.0
+    states, tensions = controllers.closed_loop(ReelIn(), [0.0, 0.0, -0.99, 0.0], 2000)
+    assert len(states) == len(tensions) + 1 < 2001
+    assert dynamics.in_domain(states).all()
+    with np.errstate(all='ignore'):
+        assert not dynamics.in_domain(dynamics.rk4_step(states[-1], 5.0, 0.01, 10))

@@ -315,13 +315,19 @@ class TensionLimiter:
 
 
 def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10, u_max=5.0):
-    """Run controller on the dynamics module: returns states (steps+1, n) and tensions (steps,)."""
+    """Run controller on the dynamics module: returns states (k+1, n) and tensions (k,), k =
+    steps unless the state would leave the domain: then the loop halts there, as the
+    simulator does, and k < steps."""
     limiter = TensionLimiter(u_max)
     controller.reset()
     states = [np.asarray(x0, dtype=float)]
     tensions = []
     for _ in range(steps):
         u = limiter(controller.compute(states[-1]))
+        with np.errstate(all='ignore'):
+            nxt = dynamics.rk4_step(states[-1], u, h, substeps)
+        if not dynamics.in_domain(nxt):
+            break
         tensions.append(u)
-        states.append(dynamics.rk4_step(states[-1], u, h, substeps))
+        states.append(nxt)
     return np.array(states), np.array(tensions)

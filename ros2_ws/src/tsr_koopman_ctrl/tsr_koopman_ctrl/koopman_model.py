@@ -20,6 +20,11 @@ sum (``../shared/TSR_PHYSICS.md`` explains why the paper's terms are changed):
   The numerical rank is reported separately.
 - L_eq (not in the paper, weight 0 by default): the squared drift per tau of the lifted model
   at the known equilibrium x = 0, u = 3, which LQR and MPC regulate to.
+- L_step (not in the paper, weight 0 by default): `one_step_error`, the relative error of the
+  one-step prediction from every measured state of the batch.
+
+With `anchor_equilibrium` (not in the paper) Phi(x) - Phi(0) and psi_uu(u) - psi_uu(3) replace
+Phi and psi_uu, so the equilibrium is an exact fixed point and L_eq is identically zero.
 """
 
 import numpy as np

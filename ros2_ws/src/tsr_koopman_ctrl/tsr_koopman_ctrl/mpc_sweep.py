@@ -24,15 +24,11 @@ STARTS = tuple(tuple(float(v) for v in x0)
 
 
 def run(model, horizon, x0, steps):
-    """One closed loop; the summary, with 'left_domain' set if the state left the domain."""
+    """One closed loop; the summary, with 'left_domain' set if it halted outside the domain."""
     mpc = controllers.KoopmanMpc(model, horizon=horizon)
-    with np.errstate(all='ignore'):
-        states, tensions = controllers.closed_loop(mpc, x0, steps)
-    inside = dynamics.in_domain(states)
-    kept = int(np.argmin(inside)) if not inside.all() else len(states)
-    tau = np.arange(kept) * dynamics.PAPER_STEP
-    summary = deployment_summary(tau, states[:kept], tensions[:max(kept - 1, 0)])
-    summary.update(left_domain=kept < len(states), fallbacks=mpc.fallbacks)
+    states, tensions = controllers.closed_loop(mpc, x0, steps)
+    summary = deployment_summary(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions)
+    summary.update(left_domain=len(states) <= steps, fallbacks=mpc.fallbacks)
     return summary
 
 
