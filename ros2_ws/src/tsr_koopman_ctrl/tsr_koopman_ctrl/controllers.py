@@ -118,6 +118,8 @@ class KoopmanMpc:
         a, b = self.model.A, self.model.B
         q = lifted_state_weight(self.model, state_weight)
         self.z_ref, self.u_hat_ref = lifted_reference(self.model)
+        # psi_uu(0) and psi_uu(u_max): with psi_ux(x) they bound u_hat at each step.
+        self.input_range = [float(self.model.input_map(u)) for u in (0.0, self.u_max)]
         n_steps = self.horizon
         weights = [q] * (n_steps - 1) + [self.terminal_weight(terminal, q, r)]
         self.q_bar = scipy.linalg.block_diag(*weights)
@@ -175,9 +177,8 @@ class KoopmanMpc:
         planar = np.asarray(x, dtype=float)[:self.model.n]
         e0 = self.model.psi_x(planar) - self.z_ref
         gain = float(self.model.psi_ux(planar))
-        input_map = self.model.input_map
-        u_hat_low = gain * float(input_map(0.0)) - self.u_hat_ref
-        u_hat_high = gain * float(input_map(self.u_max)) - self.u_hat_ref
+        u_hat_low = gain * self.input_range[0] - self.u_hat_ref
+        u_hat_high = gain * self.input_range[1] - self.u_hat_ref
         predicted = self.free @ e0 + self.drift_gain @ self.drift
         linear = np.r_[2.0 * self.forced.T @ self.q_bar @ predicted, self.slack_weight]
         linear[0] -= 2.0 * self.rate_weight * self.last_move
