@@ -1,8 +1,8 @@
 """Per-step compute of every controller, and the lifted model in numpy against torch.
 
 Figures (microseconds, median and p99 over `--repeats` calls on states along a deployment):
-- psi_x + psi_u for one state: numpy (`lifted.LiftedModel`, the controller's form) and torch
-  (`koopman_model.DeepKoopman`, the training form); the ratio torch / numpy.
+- psi_x + psi_u for one state: numpy (`model.LiftedModel`, the controller's form) and torch
+  (`learning.deep_koopman.DeepKoopman`, the training form); the ratio torch / numpy.
 - compute(x) of each controller: linear_lqr, fractional_pd, koopman_lqr, koopman_mpc (the
   last is one OSQP solve per step: the MPC solve time).
 """
@@ -13,7 +13,9 @@ import time
 import numpy as np
 import torch
 
-from tsr_koopman_ctrl import controllers, koopman_model, lifted, model_file
+from tsr_koopman_ctrl.control import closed_loop, LinearisedLqr, make_controller
+from tsr_koopman_ctrl.learning import deep_koopman
+from tsr_koopman_ctrl.model import DEFAULT_MODEL, LiftedModel, model_file, resolve
 from tsr_sim import dynamics
 
 
@@ -30,15 +32,14 @@ def timings(function, inputs, repeats):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--model', default=controllers.DEFAULT_MODEL)
+    parser.add_argument('--model', default=DEFAULT_MODEL)
     parser.add_argument('--repeats', type=int, default=3000)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    states, _ = controllers.closed_loop(controllers.LinearisedLqr(),
-                                        dynamics.PAPER_INITIAL_STATE, 1000)
-    model = lifted.LiftedModel.load(args.model)
-    tensors, config, _ = model_file.load(args.model)
-    net = koopman_model.DeepKoopman.from_numpy(tensors, config).eval()
+    states, _ = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, 1000)
+    model = LiftedModel.load(args.model)
+    tensors, config, _ = model_file.load(resolve(args.model))
+    net = deep_koopman.DeepKoopman.from_numpy(tensors, config).eval()
 
     def numpy_lift(x):
         return model.psi_x(x), model.psi_u(x, 3.0)
@@ -55,7 +56,7 @@ def main():
     ratio = rows[1][1] / rows[0][1]
     for name in ('linear_lqr', 'fractional_pd', 'koopman_lqr', 'koopman_mpc'):
         options = {'model': model} if name.startswith('koopman') else {}
-        controller = controllers.make_controller(name, **options)
+        controller = make_controller(name, **options)
         rows.append((f'{name} compute', *timings(controller.compute, states,
                                                  max(300, args.repeats // 5))))
     print(f"{'what':32s} {'median us':>10s} {'p99 us':>10s}")

@@ -8,8 +8,10 @@ import argparse
 import os
 import tempfile
 
-from tsr_koopman_ctrl import deploy
-from tsr_koopman_ctrl.bag import BagReader, STATE_TOPIC
+from tsr_sim.wire import resolve, STATE_TOPIC
+
+from tsr_koopman_ctrl.bag import BagReader
+from tsr_koopman_ctrl.tools import deploy
 
 
 def main():
@@ -24,7 +26,7 @@ def main():
                         '--out', os.path.join(tmp, 'out'), '--bags', bags]) != 0:
             raise SystemExit('deployment failed')
         bag_dir = os.path.join(bags, os.listdir(bags)[0])
-        times = [m.log_time_ns for m in BagReader(bag_dir).messages({STATE_TOPIC})]
+        times = [m.log_time_ns for m in BagReader(bag_dir).messages({resolve(STATE_TOPIC)})]
     span = (times[-1] - times[0]) * 1e-9
     print(f'lockstep over DDS ({args.controller}): {len(times) - 1} steps in {span:.2f} s = '
           f'{(len(times) - 1) / span:,.0f} steps/s '

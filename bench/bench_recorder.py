@@ -20,7 +20,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt64
 
 from tsr_koopman_ctrl.bag import BagReader
-from tsr_koopman_ctrl.launcher import NodeProcess
+from tsr_koopman_ctrl.tools.launcher import NodeProcess
 
 TOPIC = '/bench/counter'
 # Deep reliable history: a KEEP_ALL writer errors out once its queue is full on a burst.

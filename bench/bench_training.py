@@ -11,25 +11,26 @@ import time
 
 import torch
 
-from tsr_koopman_ctrl import controllers, koopman_model, model_file
-from tsr_koopman_ctrl import dataset as datasets
+from tsr_koopman_ctrl.learning import dataset as datasets
+from tsr_koopman_ctrl.learning import deep_koopman
+from tsr_koopman_ctrl.model import DEFAULT_MODEL, model_file, resolve
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--model', default=controllers.DEFAULT_MODEL)
+    parser.add_argument('--model', default=DEFAULT_MODEL)
     parser.add_argument('--batches', type=int, default=30)
     args = parser.parse_args()
-    _, config, meta = model_file.load(args.model)
+    _, config, meta = model_file.load(resolve(args.model))
     data, _ = datasets.sample(datasets.SamplingConfig(trajectories=config.batch_size * 4))
     x = torch.as_tensor(data.x, dtype=torch.float32)
     u = torch.as_tensor(data.u, dtype=torch.float32)
-    net = koopman_model.DeepKoopman(config, x.reshape(-1, 4).mean(0), x.reshape(-1, 4).std(0))
+    net = deep_koopman.DeepKoopman(config, x.reshape(-1, 4).mean(0), x.reshape(-1, 4).std(0))
     optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
 
     def step(i):
         index = torch.arange(i * config.batch_size, (i + 1) * config.batch_size) % len(x)
-        loss, _ = koopman_model.total_loss(net, x[index], u[index])
+        loss, _ = deep_koopman.total_loss(net, x[index], u[index])
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()

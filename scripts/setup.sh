@@ -26,7 +26,7 @@ install_venv() {
 }
 
 # The wheels' rosidl_generator_py export files name the wheel build machine's include paths
-# (../shared/ROS_FROM_WHEELS.md, fix 2): point them at this interpreter's.
+# (docs/ros_from_wheels.md, fix 2): point them at this interpreter's.
 fix_rosidl_py_exports() {
   local py_inc np_inc
   py_inc=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
@@ -39,12 +39,12 @@ fix_rosidl_py_exports() {
 
 build_workspace() {
   local want have
-  want=$(cd "$WS" && find src -type f ! -name '*.pyc' ! -path '*/__pycache__/*' -print0 \
+  want=$(cd "$WS" && find -L src -type f ! -name '*.pyc' ! -path '*/__pycache__/*' -print0 \
          | sort -z | xargs -0 sha256sum | sha256sum | cut -d' ' -f1)
   have=$(cat "$WS/install/.tsr-built" 2>/dev/null || true)
   [ "$want" = "$have" ] && return 0
   say "colcon build of $WS"
-  # Fix 1 of ROS_FROM_WHEELS.md: colcon-ros copies AMENT_PREFIX_PATH into CMAKE_PREFIX_PATH.
+  # Fix 1 of docs/ros_from_wheels.md: colcon-ros copies AMENT_PREFIX_PATH into CMAKE_PREFIX_PATH.
   (cd "$WS" && AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH" \
      "$VENV/bin/colcon" build --symlink-install --event-handlers console_cohesion- \
      --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \

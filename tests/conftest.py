@@ -1,27 +1,80 @@
-"""Fixtures for rclpy integration tests: an isolated DDS domain, nodes as separate processes
-(the installed executables) and an in-test rclpy node on the same domain."""
+"""Shared fixtures.
+
+ROS-free: the shipped model's path, a small sampled data set and a tiny trained model.
+ROS (tests marked `ros`): an isolated DDS domain, nodes as separate processes (the installed
+executables) and an in-test rclpy node on the same domain. A test that uses the ROS fixtures
+must carry the `ros` marker, so that `pytest -m "not ros"` runs the core alone.
+"""
 
 import os
+import pathlib
 import time
 
 import pytest
 
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SHIPPED_MODEL = str(ROOT / 'models' / 'koopman_default')
+ROS_FIXTURES = {'ros', 'start_node', 'domain_id'}
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if ROS_FIXTURES & set(item.fixturenames) and item.get_closest_marker('ros') is None:
+            raise pytest.UsageError(f'{item.nodeid} uses ROS fixtures without the ros marker')
+
+
+# ---------------------------------------------------------------------------------------------
+# ROS-free
+
+def tiny_config():
+    from tsr_koopman_ctrl.model import model_file
+    return model_file.KoopmanConfig(lift_dim=4, hidden=16, layers=2, input_hidden=8,
+                                    input_layers=1, input_terms=3, epochs=4, batch_size=32,
+                                    learning_rate=3e-3)
+
+
+@pytest.fixture(scope='session')
+def small_data():
+    from tsr_koopman_ctrl.learning import dataset as datasets
+    return datasets.sample(datasets.SamplingConfig(trajectories=400, seed=3))[0]
+
+
+@pytest.fixture(scope='session')
+def tiny_model(small_data, tmp_path_factory):
+    """(model directory, torch model, trainer) of a tiny model trained for 4 epochs."""
+    from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
+    out = tmp_path_factory.mktemp('model')
+    config = tiny_config()
+    trainer = Trainer(config, out, progress=False)
+    net = trainer.fit(small_data)
+    save_model(out, net, config, trainer, small_data, small_data, 1.0, 'test')
+    return out, net, trainer
+
+
+# ---------------------------------------------------------------------------------------------
+# ROS
 
 @pytest.fixture(scope='session')
 def domain_id():
-    """A DDS domain of our own, so parallel runs and other ROS graphs do not interfere."""
-    return int(os.environ.get('TSR_TEST_DOMAIN', 100 + os.getpid() % 100))
+    """A DDS domain of our own: ROS_DOMAIN_ID when the caller set one, else one derived from
+    the process id, so parallel runs and other ROS graphs do not interfere."""
+    for name in ('ROS_DOMAIN_ID', 'TSR_TEST_DOMAIN'):
+        if os.environ.get(name):
+            return int(os.environ[name])
+    return 100 + os.getpid() % 100
 
 
 @pytest.fixture
 def start_node(domain_id, tmp_path):
-    """Factory: start_node(pkg, exe, name, params) -> NodeProcess; all stopped at teardown."""
-    from tsr_koopman_ctrl.launcher import NodeProcess
+    """Factory: start_node(pkg, exe, name, params, ...) -> NodeProcess; all stopped at
+    teardown. Logs go to tmp_path/<name>.log."""
+    from tsr_koopman_ctrl.tools.launcher import NodeProcess
     started = []
 
-    def start(package, exe, name, params=None, extra_args=()):
+    def start(package, exe, name, params=None, extra_args=(), namespace=None, cwd=None):
         proc = NodeProcess(package, exe, name, params, domain_id=domain_id,
-                           log_path=str(tmp_path / f'{name}.log'), extra_args=extra_args)
+                           log_path=str(tmp_path / f'{name}.log'), extra_args=extra_args,
+                           namespace=namespace, cwd=cwd)
         started.append(proc)
         return proc
 

@@ -1,29 +1,48 @@
 from glob import glob
+import os
 
 from setuptools import find_packages, setup
 
 package_name = 'tsr_koopman_ctrl'
 
+
+def model_files():
+    """Every shipped model directory under models/ (a link to the repository's models/),
+    installed to share/<pkg>/models/<same path>, so nodes find them from any directory."""
+    entries = []
+    for directory, _, names in os.walk('models', followlinks=True):
+        files = [os.path.join(directory, n) for n in sorted(names)
+                 if n in ('model.json', 'weights.safetensors', 'README.md')]
+        if files:
+            entries.append((os.path.join('share', package_name, directory), files))
+    return entries
+
+
 setup(
     name=package_name,
-    version='0.1.0',
+    version='0.2.0',
     packages=find_packages(exclude=['test']),
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        *model_files(),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
     maintainer='tsr-koopman',
     maintainer_email='tsr-koopman@example.com',
-    description='Tension control of TSR deployment and the MCAP bag recorder.',
+    description='Koopman-model tension control of tethered space robot deployment: control '
+                'laws, learning, bags, the controller and recorder nodes and the tools.',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'controller_node = tsr_koopman_ctrl.controller_node:main',
-            'recorder_node = tsr_koopman_ctrl.recorder_node:main',
-            'deploy = tsr_koopman_ctrl.deploy:main',
+            'controller_node = tsr_koopman_ctrl.nodes.controller_node:main',
+            'recorder_node = tsr_koopman_ctrl.nodes.recorder_node:main',
+            'deploy = tsr_koopman_ctrl.tools.deploy:main',
+            'train = tsr_koopman_ctrl.tools.train:main',
+            'evaluate = tsr_koopman_ctrl.tools.evaluate:main',
+            'mpc_sweep = tsr_koopman_ctrl.tools.mpc_sweep:main',
         ],
     },
 )

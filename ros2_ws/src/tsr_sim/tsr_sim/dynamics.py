@@ -25,6 +25,10 @@ STATE_NAMES = ('theta', 'theta_rate', 'length_offset', 'length_rate', 'beta', 'b
 
 #: The deployed equilibrium x = 0 is held by the tension u = 3 (paper, Section II-A).
 EQUILIBRIUM_TENSION = 3.0
+#: The largest tension the system commands or accepts, dimensionless: the top of the paper's
+#: sampled range (Table 1). Every limit in the project (the simulator's command check, the
+#: controller's clamp, the MPC's bound, the frontier) derives from this one number.
+TENSION_LIMIT = 5.0
 #: The paper's sample period in tau (Section IV): one RK4 step of the learned model.
 PAPER_STEP = 0.01
 #: The paper's initial deployment state (Section IV-D): l = 0.01, l' = 0.5.
@@ -32,7 +36,7 @@ PAPER_INITIAL_STATE = np.array([0.0, 0.0, -0.99, 0.5])
 #: Table 1 of the paper: ranges of the sampled initial states and of the random tension.
 TABLE1_STATE_LOW = np.array([-2.5, -1.0, -0.99, 0.0])
 TABLE1_STATE_HIGH = np.array([0.5, 1.0, 0.0, 2.0])
-TABLE1_TENSION_RANGE = (0.0, 5.0)
+TABLE1_TENSION_RANGE = (0.0, TENSION_LIMIT)
 
 
 def equilibrium_state(dim=PLANAR_DIM):
@@ -67,7 +71,7 @@ def rk4_step(x, u, h=PAPER_STEP, substeps=1):
     """Advance x by one sample period h with u held constant, using `substeps` RK4 steps.
 
     The paper samples with one RK4 step of h = 0.01. Near l -> 0 with large l' that single step
-    is inaccurate (see ../shared/TSR_PHYSICS.md); the simulator uses substeps for the plant.
+    is inaccurate (docs/physics.md, numerics); the simulator uses substeps for the plant.
     """
     x = np.asarray(x, dtype=float)
     u = np.asarray(u, dtype=float)

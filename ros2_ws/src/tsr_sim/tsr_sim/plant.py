@@ -74,7 +74,9 @@ class Plant:
         self._rng = np.random.default_rng(config.seed)
         self.counters = {reason: 0 for reason in Rejection}
         self.accepted = 0
-        self.reset(config.initial_state)
+        error = self.reset(config.initial_state)
+        if error is not None:
+            raise ValueError(f'initial_state {config.initial_state.tolist()}: {error}')
 
     @property
     def tau(self):
@@ -112,13 +114,6 @@ class Plant:
             self.accepted += 1
         else:
             self.counters[rejection] += 1
-        return rejection
-
-    def submit(self, tension, step=None):
-        """Apply a command if valid and advance one step; return the Rejection or None."""
-        rejection = self.accept(tension, step)
-        if rejection is None:
-            self.advance(tension)
         return rejection
 
     def advance(self, tension):

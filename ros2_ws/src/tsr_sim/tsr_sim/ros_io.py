@@ -1,26 +1,19 @@
-"""ROS glue shared by the nodes: topic names, QoS, parameter declaration, message <-> array.
+"""ROS glue shared by the nodes: QoS, parameter declaration, the node life cycle.
 
-Kept apart from the ROS-free core (dynamics, units, plant) so that the core imports without rclpy.
+Kept apart from the ROS-free core (dynamics, units, plant, wire) so that the core imports without
+rclpy. Topic names and message <-> array conversion are in `tsr_sim.wire`.
 """
 
 import sys
 
-import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from tsr_msgs.msg import TensionCommand, TsrState
 
-from tsr_sim.dynamics import BETA, BETA_RATE, PLANAR_DIM, SPATIAL_DIM
 from tsr_sim.units import DEFAULT_MASS, PAPER_ORBIT_RATE, PAPER_TETHER_LENGTH, Scale
-
-STATE_TOPIC = 'tsr/state'
-TENSION_TOPIC = 'tsr/tension_cmd'
-STATUS_TOPIC = 'tsr/sim_status'
-RESET_SERVICE = 'tsr/reset'
 
 #: State and command: reliable, so lockstep never loses a step; shallow, so no backlog builds.
 LOOP_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
@@ -57,34 +50,6 @@ def declare_scale(node):
         tether_length=declare(node, 'tether_length', PAPER_TETHER_LENGTH,
                               'full tether length L [m]', 1e-3, 1e9),
         mass=declare(node, 'mass', DEFAULT_MASS, 'robot mass m [kg]', 1e-6, 1e9))
-
-
-def state_to_msg(si_state, step, stamp):
-    """SI state array (layout of tsr_sim.units.Scale.state_to_si) -> TsrState."""
-    msg = TsrState()
-    msg.header.stamp = stamp
-    msg.step = int(step)
-    msg.theta, msg.theta_rate, msg.length, msg.length_rate = (float(v) for v in si_state[:4])
-    if si_state.shape[-1] == SPATIAL_DIM:
-        msg.has_out_of_plane = True
-        msg.beta, msg.beta_rate = float(si_state[BETA]), float(si_state[BETA_RATE])
-    return msg
-
-
-def msg_to_state(msg, dim=PLANAR_DIM):
-    """TsrState -> SI state array with `dim` components."""
-    values = [msg.theta, msg.theta_rate, msg.length, msg.length_rate]
-    if dim == SPATIAL_DIM:
-        values += [msg.beta, msg.beta_rate]
-    return np.array(values, dtype=float)
-
-
-def tension_msg(tension, step, stamp):
-    msg = TensionCommand()
-    msg.header.stamp = stamp
-    msg.step = int(step)
-    msg.tension = float(tension)
-    return msg
 
 
 def run_node(make_node, on_exit=None, args=None):

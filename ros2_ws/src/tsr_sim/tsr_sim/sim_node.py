@@ -24,8 +24,9 @@ from tsr_msgs.srv import ResetSim
 from tsr_sim import dynamics
 from tsr_sim.plant import Plant, PlantConfig, Status
 from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_PUBLISHER_QOS, LOOP_QOS,
-                            RESET_SERVICE, run_node, state_to_msg, STATE_TOPIC, STATUS_TOPIC,
-                            TENSION_TOPIC)
+                            run_node)
+from tsr_sim.wire import (CLOCK_TOPIC, RESET_SERVICE, SIM_STATUS_TOPIC, STATE_TOPIC,
+                          state_to_msg, TENSION_TOPIC)
 
 
 class SimNode(Node):
@@ -57,8 +58,8 @@ class SimNode(Node):
                                       'state leaves the domain')
 
         self.state_pub = self.create_publisher(TsrState, STATE_TOPIC, LOOP_PUBLISHER_QOS)
-        self.status_pub = self.create_publisher(SimStatus, STATUS_TOPIC, LATCHED_QOS)
-        self.clock_pub = self.create_publisher(Clock, '/clock', 10)
+        self.status_pub = self.create_publisher(SimStatus, SIM_STATUS_TOPIC, LATCHED_QOS)
+        self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
         self.create_subscription(TensionCommand, TENSION_TOPIC, self.on_command, LOOP_QOS)
         self.create_service(ResetSim, RESET_SERVICE, self.on_reset)
 
@@ -91,8 +92,10 @@ class SimNode(Node):
             step=declare(self, 'step', dynamics.PAPER_STEP, 'sample period h [tau]', 1e-6, 10.0),
             substeps=declare(self, 'substeps', 10, 'RK4 substeps per sample period', 1, 10000),
             scale=scale,
-            max_tension=declare(self, 'max_tension', scale.u_to_tension(5.0),
-                                'largest accepted tension [N] (default u = 5)', 1e-9, 1e9),
+            max_tension=declare(self, 'max_tension',
+                                scale.u_to_tension(dynamics.TENSION_LIMIT),
+                                'largest accepted tension [N] (default: u = '
+                                f'{dynamics.TENSION_LIMIT:g})', 1e-9, 1e9),
             max_steps=declare(self, 'max_steps', 0, 'stop after this many steps (0: never)',
                               0, 10**12),
             process_noise_std=self._noise_std(

@@ -1,0 +1,11 @@
+"""Bags, ROS-free: the rosbag2-layout MCAP writer and reader, and the TSR loop read back.
+
+    from tsr_koopman_ctrl.bag import BagReader, read_loop
+    loop = read_loop('bags/deploy_...')          # states, tensions, statuses, compute times
+    print(loop.report.summary())
+"""
+
+from tsr_koopman_ctrl.bag.definitions import TopicInfo  # noqa: F401
+from tsr_koopman_ctrl.bag.reader import BagReader  # noqa: F401
+from tsr_koopman_ctrl.bag.tsr_loop import read_loop, RecordedLoop  # noqa: F401
+from tsr_koopman_ctrl.bag.writer import BagWriter  # noqa: F401

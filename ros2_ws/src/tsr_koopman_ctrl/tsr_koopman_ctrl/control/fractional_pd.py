@@ -1,0 +1,59 @@
+"""Fractional-order tension law (Sun 2014 type, PD^alpha), gains documented here."""
+
+import dataclasses
+from typing import ClassVar
+
+import numpy as np
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.settings import LawSettings, setting
+
+
+@dataclasses.dataclass(frozen=True)
+class FractionalPdSettings(LawSettings):
+    law: ClassVar[str] = 'fractional_pd'
+    alpha: float = setting(0.9, 'order of the fractional derivative', low=0.01, high=1.5)
+    #: The linear_lqr gains for Q = I, R = 1 (a test checks they still are).
+    gains: tuple = setting((2.872, -0.392, -6.162, -3.429),
+                           'gains (k_theta, d_theta, k_l, d_l) on theta, D^alpha theta, l - 1, '
+                           'D^alpha (l - 1)')
+    memory: int = setting(200, 'samples of the Grunwald-Letnikov sum', low=1, high=100_000)
+
+
+class FractionalOrderPd(Law):
+    """u = 3 - (k_theta theta + k_l (l - 1)) - D^alpha (d_theta theta + d_l (l - 1)).
+
+    D^alpha by Grunwald-Letnikov over the last `memory` samples of period h (history before the
+    first sample taken equal to it). With alpha = 1 this is the linearised LQR law with the rates
+    replaced by differenced positions; the default gains are that law's (Q = I, R = 1) and
+    alpha = 0.9 adds the fractional operator's memory.
+    """
+
+    name = 'fractional_pd'
+    Settings = FractionalPdSettings
+
+    def __init__(self, settings=None, **kwargs):
+        super().__init__(settings, **kwargs)
+        s = self.settings
+        self.k_theta, self.d_theta, self.k_l, self.d_l = s.gains
+        weights = [1.0]
+        for j in range(1, s.memory + 1):
+            weights.append(weights[-1] * (1.0 - (s.alpha + 1.0) / j))
+        self.weights = np.array(weights) / self.h ** s.alpha
+        self.reset()
+
+    def reset(self):
+        super().reset()
+        self.history = None
+
+    def compute(self, x):
+        x = np.asarray(x, dtype=float)
+        signal = self.d_theta * x[dynamics.THETA] + self.d_l * x[dynamics.LENGTH_OFFSET]
+        if self.history is None:
+            self.history = np.full(len(self.weights), signal)
+        self.history = np.roll(self.history, 1)
+        self.history[0] = signal
+        derivative = float(self.weights @ self.history)
+        proportional = self.k_theta * x[dynamics.THETA] + self.k_l * x[dynamics.LENGTH_OFFSET]
+        return dynamics.EQUILIBRIUM_TENSION - proportional - derivative

@@ -1,0 +1,62 @@
+"""Koopman-LQR (paper Section III-C): discrete LQR on the learned lifted system (A, B)."""
+
+import dataclasses
+from typing import ClassVar
+
+import numpy as np
+
+from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.lqr import discrete_lqr_gain
+from tsr_koopman_ctrl.control.settings import LawSettings, setting
+from tsr_koopman_ctrl.model.lifted import LiftedModel
+from tsr_koopman_ctrl.model.shipped import DEFAULT_MODEL
+
+
+@dataclasses.dataclass(frozen=True)
+class KoopmanLqrSettings(LawSettings):
+    law: ClassVar[str] = 'koopman_lqr'
+    model: str = setting(DEFAULT_MODEL, 'model directory, or the name of a shipped model')
+    r: float = setting(15.0, "input weight R' on the lifted input (paper: 15)", low=1e-9)
+    state_weight: str = setting('lifted', "Q' = I on the lifted state ('lifted', the paper's "
+                                "setting) or C^T diag(q) C on the state ('state')",
+                                choices=('lifted', 'state'))
+    q: tuple = setting((1.0, 1.0, 1.0, 1.0), "state weights q of Q' = C^T diag(q) C "
+                       "(state_weight 'state')", low=0.0)
+
+
+def load_model(model):
+    """A LiftedModel as given, or loaded from a directory or a shipped model's name."""
+    return model if isinstance(model, LiftedModel) else LiftedModel.load(model)
+
+
+def lifted_state_weight(model, settings):
+    """Q' of a lifted law's settings."""
+    return model.state_weight('lifted' if settings.state_weight == 'lifted' else settings.q)
+
+
+class KoopmanLqr(Law):
+    """u_hat = u_hat_d - K (psi_x(x) - z_d), u = psi_uu^-1(u_hat / psi_ux(x)).
+
+    z_d = psi_x(0), u_hat_d = psi_u(0, 3); K from the discrete Riccati equation on the learned
+    (A, B) with Q' (settings) and R'; the lifted state is recomputed from each measurement.
+    """
+
+    name = 'koopman_lqr'
+    Settings = KoopmanLqrSettings
+
+    def __init__(self, settings=None, **kwargs):
+        super().__init__(settings, **kwargs)
+        self.model = load_model(self.settings.model)
+        self.q = lifted_state_weight(self.model, self.settings)
+        self.gain, self.riccati = discrete_lqr_gain(self.model.A, self.model.B, self.q,
+                                                    self.settings.r)
+        self.z_ref, self.u_hat_ref = self.model.reference()
+
+    def compute(self, x):
+        planar = np.asarray(x, dtype=float)[:self.model.n]
+        u_hat = self.u_hat_ref - float(self.gain @ (self.model.psi_x(planar) - self.z_ref))
+        return self.model.tension_from_input(planar, u_hat)
+
+    def closed_loop_spectral_radius(self):
+        a, b = self.model.A, self.model.B
+        return float(np.max(np.abs(np.linalg.eigvals(a - b @ self.gain[None, :]))))

@@ -1,0 +1,32 @@
+"""The interface every tension law implements, ROS-free.
+
+A law works in the paper's dimensionless variables: `compute(x)` takes the measured planar state
+[theta, theta', l - 1, l'] (a 3-D state is cut to its planar part) and returns the tension u; the
+caller passes u through `TensionLimiter`, the single output clamp. `reset()` forgets the past
+(before a new deployment). Settings come from the law's `Settings` class (`settings.py`); the
+sample period h and the tension limit u_max are the loop's, not the law's, so they are separate.
+"""
+
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control.settings import build, LawSettings
+
+
+class Law:
+    name = ''
+    Settings = LawSettings
+
+    def __init__(self, settings=None, *, h=dynamics.PAPER_STEP, u_max=dynamics.TENSION_LIMIT,
+                 **overrides):
+        self.settings = build(self.Settings, settings, overrides)
+        if not (h > 0.0 and u_max > 0.0):
+            raise ValueError(f'h and u_max must be > 0, got {h}, {u_max}')
+        self.h, self.u_max = float(h), float(u_max)
+        #: Steps where an optimiser failed and the law fell back (counted, reported on the wire).
+        self.fallbacks = 0
+
+    def reset(self):
+        self.fallbacks = 0
+
+    def compute(self, x):
+        raise NotImplementedError

@@ -1,0 +1,33 @@
+"""Discrete LQR and the MPC's prediction matrices: linear algebra the lifted laws share."""
+
+import numpy as np
+import scipy.linalg
+
+
+def discrete_lqr_gain(a, b, q, r):
+    """K (N,) of u = -K z for z+ = A z + B u minimising sum z'Qz + r u^2, and the DARE's P."""
+    if not r > 0.0:
+        raise ValueError(f'R must be > 0, got {r}')
+    r = np.atleast_2d(float(r))
+    try:
+        p = scipy.linalg.solve_discrete_are(a, b, q, r)
+    except (np.linalg.LinAlgError, ValueError) as error:
+        raise ValueError(f'no LQR gain for this (A, B): {error} (is it stabilisable?)')
+    return np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a)[0], p
+
+
+def prediction_matrices(a, b, steps):
+    """e_1..e_N stacked = free e_0 + forced v + drift_gain d for e+ = A e + B v + d."""
+    nz = a.shape[0]
+    powers = [np.eye(nz)]
+    for _ in range(steps):
+        powers.append(a @ powers[-1])
+    free = np.vstack(powers[1:])
+    forced = np.zeros((steps * nz, steps))
+    drift_gain = np.zeros((steps * nz, nz))
+    for k in range(1, steps + 1):
+        rows = slice((k - 1) * nz, k * nz)
+        for j in range(k):
+            forced[rows, j] = (powers[k - 1 - j] @ b)[:, 0]
+        drift_gain[rows] = sum(powers[:k])
+    return free, forced, drift_gain

@@ -1,0 +1,22 @@
+"""The laws by name: what the node, the tools and users build a controller from."""
+
+from tsr_koopman_ctrl.control.fractional_pd import FractionalOrderPd
+from tsr_koopman_ctrl.control.koopman_lqr import KoopmanLqr
+from tsr_koopman_ctrl.control.koopman_mpc import KoopmanMpc
+from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr
+
+CONTROLLERS = {law.name: law
+               for law in (LinearisedLqr, FractionalOrderPd, KoopmanLqr, KoopmanMpc)}
+
+
+def law_class(name):
+    try:
+        return CONTROLLERS[name]
+    except KeyError:
+        raise ValueError(f'unknown controller {name!r}; choose from {sorted(CONTROLLERS)}')
+
+
+def make_controller(name, settings=None, **overrides):
+    """Build the law `name`: its settings (an instance of its Settings class, or the defaults)
+    with `overrides` (settings fields, or the loop's h and u_max) applied."""
+    return law_class(name)(settings, **overrides)

@@ -1,0 +1,99 @@
+"""Each law's settings, declared once: a frozen dataclass per law whose fields carry their
+description and range. The controller node's parameters (``<law>.<field>``), the tools' CLI flags
+(``--set <law>.<field>=<value>``) and the example config file are all derived from these classes.
+"""
+
+import dataclasses
+import math
+
+
+def setting(default, description, low=None, high=None, choices=None):
+    """A settings field: its default, a one-line description with units, a range or choices.
+    A sequence default (a tuple) fixes the number of values the setting takes."""
+    if isinstance(default, list):
+        default = tuple(default)
+    return dataclasses.field(default=default, metadata={
+        'description': description, 'low': low, 'high': high, 'choices': choices,
+        'size': len(default) if isinstance(default, tuple) else None})
+
+
+@dataclasses.dataclass(frozen=True)
+class LawSettings:
+    """Base of every law's settings: checks ranges and choices when built."""
+
+    def __post_init__(self):
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, list):
+                value = tuple(value)
+                object.__setattr__(self, field.name, value)
+            check_value(type(self), field, value)
+
+
+def check_value(settings_class, field, value):
+    """Raise ValueError (one line naming the setting) if `value` is out of range or not one of
+    the choices."""
+    meta = field.metadata
+    where = f'{law_name(settings_class)}.{field.name}'
+    if meta.get('choices') and value not in meta['choices']:
+        raise ValueError(f'{where} must be one of {list(meta["choices"])}, got {value!r}')
+    if meta.get('size') is not None and (not isinstance(value, tuple)
+                                         or len(value) != meta['size']):
+        raise ValueError(f'{where} needs {meta["size"]} numbers, got {value!r}')
+    numbers = value if isinstance(value, tuple) else (value,)
+    for number in numbers:
+        if isinstance(number, (int, float)) and not isinstance(number, bool):
+            if not math.isfinite(number):
+                raise ValueError(f'{where} must be finite, got {value!r}')
+            if meta.get('low') is not None and number < meta['low']:
+                raise ValueError(f'{where} must be >= {meta["low"]}, got {value!r}')
+            if meta.get('high') is not None and number > meta['high']:
+                raise ValueError(f'{where} must be <= {meta["high"]}, got {value!r}')
+
+
+def law_name(settings_class):
+    """The registry name a settings class belongs to (its `law` class attribute)."""
+    return getattr(settings_class, 'law', settings_class.__name__)
+
+
+def fields(settings_class):
+    """[(name, default, metadata)] of a law's settings, in declaration order."""
+    return [(f.name, f.default, f.metadata) for f in dataclasses.fields(settings_class)]
+
+
+def build(settings_class, settings=None, overrides=None):
+    """Settings from an instance (or None: the defaults) with `overrides` applied and checked."""
+    base = settings if settings is not None else settings_class()
+    if not isinstance(base, settings_class):
+        raise TypeError(f'expected {settings_class.__name__}, got {type(base).__name__}')
+    overrides = dict(overrides or {})
+    known = {f.name for f in dataclasses.fields(settings_class)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ValueError(f'{law_name(settings_class)} has no setting {unknown[0]!r}; '
+                         f'settings: {sorted(known)}')
+    return dataclasses.replace(base, **overrides)
+
+
+def parse_value(settings_class, name, text):
+    """A CLI string -> the setting's type (numbers, 'a,b,c' for sequences, strings), checked."""
+    defaults = {n: d for n, d, _ in fields(settings_class)}
+    if name not in defaults:
+        raise ValueError(f'{law_name(settings_class)} has no setting {name!r}; settings: '
+                         f'{sorted(defaults)}')
+    default = defaults[name]
+    try:
+        if isinstance(default, bool):
+            if text.lower() not in ('true', 'false'):
+                raise ValueError(text)
+            return text.lower() == 'true'
+        if isinstance(default, tuple):
+            return tuple(float(v) for v in text.split(','))
+        if isinstance(default, int):
+            return int(text)
+        if isinstance(default, float):
+            return float(text)
+    except ValueError:
+        raise ValueError(f'{law_name(settings_class)}.{name}: cannot read {text!r} as '
+                         f'{type(default).__name__}')
+    return text

@@ -1,0 +1,53 @@
+"""The figures of a deployment, computed by one function every tool uses (`run_figures`).
+
+The 1% zone (paper, Section IV-D): |theta| <= 0.01 and |l - 1| <= 0.01, reached and kept.
+"""
+
+import numpy as np
+from tsr_sim.dynamics import LENGTH_OFFSET, THETA
+
+from tsr_koopman_ctrl.evaluation.frontier import frontier_tau
+
+ZONE = 0.01
+
+
+def settle_index(states, zone=ZONE):
+    """First index from which the state stays in the zone to the end; None if it never does."""
+    inside = (np.abs(states[:, THETA]) <= zone) & (np.abs(states[:, LENGTH_OFFSET]) <= zone)
+    if not inside[-1]:
+        return None
+    outside = np.flatnonzero(~inside)
+    return 0 if outside.size == 0 else int(outside[-1]) + 1
+
+
+def run_figures(tau, states, tensions, start=None, halted=False):
+    """Figures of one deployment: tau (N,), states (N, n), tensions (N-1,) or (N,) (extra values
+    ignored). `start` (the initial state) picks the frontier; `halted`: the state left the
+    domain after the last recorded step.
+
+    Keys: settle_tau (None if the zone was not reached and kept, or the run halted), swing
+    (max |theta|), theta_min, theta_max, length_overshoot (max(0, max l - 1)), tension_max,
+    tension_integral (sum u dtau), final_state, duration_tau, halted, frontier_tau and
+    frontier_ratio (None without a settle time or a tabulated frontier).
+    """
+    tau, states = np.asarray(tau, dtype=float), np.asarray(states, dtype=float)
+    index = None if halted else settle_index(states)
+    dt = np.diff(tau)
+    u = np.asarray(tensions, dtype=float)[:dt.size]
+    settle = None if index is None else float(tau[index] - tau[0])
+    swing = float(np.abs(states[:, THETA]).max())
+    frontier = frontier_tau(start, swing) if start is not None and settle is not None else None
+    return {
+        'settle_tau': settle,
+        'swing': swing,
+        'theta_min': float(states[:, THETA].min()),
+        'theta_max': float(states[:, THETA].max()),
+        'length_overshoot': float(max(0.0, states[:, LENGTH_OFFSET].max())),
+        'tension_max': float(u.max()) if u.size else 0.0,
+        'tension_integral': float(np.sum(u * dt)),
+        'final_state': states[-1].tolist(),
+        'duration_tau': float(tau[-1] - tau[0]),
+        'halted': bool(halted),
+        'frontier_tau': frontier,
+        'frontier_ratio': None if frontier is None else settle / frontier,
+    }

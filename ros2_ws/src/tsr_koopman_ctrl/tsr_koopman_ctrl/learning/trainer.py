@@ -1,0 +1,176 @@
+"""Training of the deep Koopman model: `Trainer.fit` and the model file it writes.
+
+Each epoch prints the loss terms and the validation 30-step error; the best epoch so far is kept
+and is the model returned and saved; ``<out>/checkpoint.pt`` after every epoch lets a run
+resume after an interruption. CPU by default, CUDA when present. The command line is
+`tsr_koopman_ctrl.tools.train`.
+"""
+
+import dataclasses
+import json
+import pathlib
+import platform
+import sys
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from tsr_koopman_ctrl.learning import deep_koopman, errors
+from tsr_koopman_ctrl.model import lifted, model_file
+
+CHECKPOINT = 'checkpoint.pt'
+
+
+def pick_device(name=None):
+    if name:
+        return torch.device(name)
+    return torch.device('cuda' if torch.cuda.is_available() else 'cpu')
+
+
+def to_tensors(data, device):
+    return (torch.as_tensor(data.x, dtype=torch.float32, device=device),
+            torch.as_tensor(data.u, dtype=torch.float32, device=device))
+
+
+def predict_states(model, data, device, batch=4096):
+    """States predicted by a torch model for every trajectory of `data`, as numpy."""
+    x, u = to_tensors(data, device)
+    with torch.no_grad():
+        parts = [model.predict(x[i:i + batch, 0], u[i:i + batch]).cpu().numpy()
+                 for i in range(0, len(x), batch)]
+    return np.concatenate(parts)
+
+
+def evaluate(model, data, device):
+    return errors.multistep_errors(predict_states(model, data, device), data.x)
+
+
+class Trainer:
+    """fit() a DeepKoopman on a Dataset; keeps the best epoch by validation 30-step error."""
+
+    def __init__(self, config, out_dir=None, device=None, progress=True):
+        self.config = config
+        self.out_dir = pathlib.Path(out_dir) if out_dir else None
+        self.device = pick_device(device)
+        self.progress = progress
+        self.history = []
+
+    def fit(self, data, resume=False):
+        config = self.config
+        torch.manual_seed(config.seed)
+        train, val = data.split(1.0 - config.validation_fraction, seed=config.seed)
+        if len(train) == 0 or len(val) == 0:
+            raise ValueError(f'{len(data)} trajectories are too few to split off validation')
+        flat = train.x.reshape(-1, train.x.shape[2])
+        model = deep_koopman.DeepKoopman(config, flat.mean(0), flat.std(0) + 1e-8)
+        model.to(self.device)
+        optimiser = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
+        batches = max(1, len(train) // config.batch_size)
+        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
+            optimiser, T_max=config.epochs * batches, eta_min=config.final_learning_rate)
+        start_epoch, self.best = 0, {'summed_mse': np.inf}
+        self.best_tensors = model.to_numpy()
+        if resume:
+            start_epoch = self.restore(model, optimiser, scheduler, batches)
+        x, u = to_tensors(train, self.device)
+        generator = torch.Generator().manual_seed(config.seed + start_epoch)
+        for epoch in range(start_epoch, config.epochs):
+            order = torch.randperm(len(x), generator=generator)
+            bar = tqdm(range(batches), desc=f'epoch {epoch + 1}/{config.epochs}',
+                       disable=not self.progress, leave=False, file=sys.stdout)
+            sums = {}
+            for b in bar:
+                index = order[b * config.batch_size:(b + 1) * config.batch_size]
+                loss, parts = deep_koopman.total_loss(model, x[index], u[index])
+                optimiser.zero_grad()
+                loss.backward()
+                optimiser.step()
+                scheduler.step()
+                for key, value in parts.items():
+                    sums[key] = sums.get(key, 0.0) + value
+                bar.set_postfix(loss=f'{loss.item():.4g}')
+            self.end_epoch(epoch, model, val, {k: v / batches for k, v in sums.items()})
+            self.save_checkpoint(epoch + 1, model, optimiser, scheduler)
+        model.load_state_dict({k: torch.as_tensor(v) for k, v in self.best_tensors.items()})
+        return model
+
+    def end_epoch(self, epoch, model, val, train_losses):
+        model.eval()
+        metrics = evaluate(model, val, self.device)
+        model.train()
+        record = {'epoch': epoch + 1, **train_losses, 'val_summed_mse': metrics['summed_mse']}
+        improved = metrics['summed_mse'] < self.best['summed_mse']
+        if improved:
+            self.best = {**metrics, 'epoch': epoch + 1}
+            self.best_tensors = model.to_numpy()
+        self.history.append(record)
+        if self.progress:
+            print(f"epoch {epoch + 1:3d}: rec {train_losses['reconstruction']:.3e} "
+                  f"lift {train_losses['lifted']:.3e} ctrb {train_losses['controllability']:.3e}"
+                  f" eq {train_losses['equilibrium']:.2e} step {train_losses['one_step']:.2e}"
+                  f"  val 30-step summed MSE {metrics['summed_mse']:.3e}"
+                  + ('  (best)' if improved else ''), flush=True)
+
+    def save_checkpoint(self, epochs_done, model, optimiser, scheduler):
+        if self.out_dir is None:
+            return
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        state = {'epochs_done': epochs_done, 'model': model.state_dict(),
+                 'optimiser': optimiser.state_dict(), 'scheduler': scheduler.state_dict(),
+                 'best_tensors': {k: torch.as_tensor(v) for k, v in self.best_tensors.items()},
+                 'best': json.dumps(self.best), 'history': json.dumps(self.history),
+                 'config': json.dumps(dataclasses.asdict(self.config))}
+        partial = self.out_dir / (CHECKPOINT + '.partial')
+        torch.save(state, partial)
+        partial.replace(self.out_dir / CHECKPOINT)
+
+    def restore(self, model, optimiser, scheduler, batches):
+        path = self.out_dir / CHECKPOINT if self.out_dir else None
+        if path is None or not path.exists():
+            raise ValueError(f'cannot resume: no {path}')
+        try:
+            state = torch.load(path, map_location=self.device, weights_only=True)
+            saved = json.loads(state['config'])
+        except Exception as error:   # torch raises many kinds for a damaged file
+            raise ValueError(f'cannot resume: {path} is damaged or not a checkpoint '
+                             f'({type(error).__name__})')
+        current = json.loads(json.dumps(dataclasses.asdict(self.config)))
+        # More epochs than before is allowed: that continues training.
+        differ = sorted(k for k in current if saved.get(k) != current[k] and k != 'epochs')
+        if differ:
+            raise ValueError(f'cannot resume: {path} was trained with different {differ}')
+        model.load_state_dict(state['model'])
+        optimiser.load_state_dict(state['optimiser'])
+        scheduler.load_state_dict(state['scheduler'])
+        scheduler.T_max = self.config.epochs * batches   # the (possibly longer) new schedule
+        self.best_tensors = {k: v.cpu().numpy() for k, v in state['best_tensors'].items()}
+        self.best = json.loads(state['best'])
+        self.history = json.loads(state['history'])
+        if self.progress:
+            print(f"resuming {path} after epoch {state['epochs_done']}", flush=True)
+        return int(state['epochs_done'])
+
+
+def versions():
+    import safetensors
+    return {'python': platform.python_version(), 'numpy': np.__version__,
+            'torch': torch.__version__, 'safetensors': safetensors.__version__}
+
+
+def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, command):
+    """Write the model with its test metrics, controllability rank and provenance."""
+    test = evaluate(model, test_data, trainer.device)
+    tensors = model.to_numpy()
+    metadata = {
+        'metrics': {'test': test, 'validation_best': trainer.best,
+                    'controllability_rank': lifted.controllability_rank(
+                        tensors['A'], tensors['B']),
+                    'lifted_dim': config.lifted_dim},
+        'history': trainer.history,
+        'data': {'train': train_data.provenance, 'test': test_data.provenance,
+                 'train_trajectories': len(train_data), 'test_trajectories': len(test_data)},
+        'training_seconds': round(seconds, 1), 'device': str(trainer.device),
+        'command': command, 'versions': versions()}
+    model_file.save(out_dir, tensors, config, metadata)
+    return metadata

@@ -1,0 +1,201 @@
+"""A trained deep Koopman model evaluated in numpy: the controller's form of the model.
+
+The lifted linear system (paper eq. (9)-(11)) with our fixes::
+
+    z = psi_x(x) = [x; Phi((x - mean) / std)]            (K + n)
+    z+ = A z + B u_hat,   u_hat = psi_u(x, u) = psi_ux(x) psi_uu(u),   x = C z,  C = [I 0]
+
+psi_uu is strictly increasing, so u = psi_uu^-1(u_hat / psi_ux(x)) inverts psi_u exactly (the
+paper's printed inverse does not). `LiftedModel` mirrors `learning.deep_koopman.DeepKoopman`
+in float64; tests check the two agree. Torch is not needed here: the controller's hot path is
+plain numpy.
+"""
+
+import numpy as np
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.model import model_file
+
+
+def softplus(v):
+    return np.logaddexp(0.0, v)
+
+
+class MonotoneMap:
+    """psi_uu(u) = a s + b + sum_j c_j tanh(d_j s + e_j), s = (u - mid) / half, a, c, d > 0."""
+
+    def __init__(self, tensors, tension_range):
+        low, high = tension_range
+        self.mid, self.half = 0.5 * (low + high), 0.5 * (high - low)
+        self.slope = softplus(tensors['input_map.slope']) + 1e-3
+        self.offset = float(tensors['input_map.offset'])
+        self.amplitude = softplus(tensors['input_map.amplitude'])
+        self.steepness = softplus(tensors['input_map.steepness'])
+        self.shift = tensors['input_map.shift']
+
+    def __call__(self, u):
+        s = (np.asarray(u, dtype=float)[..., None] - self.mid) / self.half
+        bumps = self.amplitude * np.tanh(self.steepness * s + self.shift)
+        return self.slope * s[..., 0] + self.offset + bumps.sum(axis=-1)
+
+    def slope_at(self, u):
+        """d psi_uu / du at a scalar u (>= a / half > 0)."""
+        s = (float(u) - self.mid) / self.half
+        decay = np.exp(-2.0 * np.abs(self.steepness * s + self.shift))
+        sech2 = 4.0 * decay / (1.0 + decay) ** 2   # 1 / cosh^2 without overflow
+        return (self.slope + float(np.sum(self.amplitude * self.steepness * sech2))) / self.half
+
+    def inverse(self, value, low=0.0, high=None, tol=1e-12):
+        """The u with psi_uu(u) = value. It exists for every value: psi_uu is strictly
+        increasing with slope >= a > 0, so onto. The bracket starts at [low, high] (default: the
+        tension range) and widens until it holds the root; then Newton steps, falling back to
+        bisection whenever a step would leave the bracket (so it always converges)."""
+        lo, hi = float(low), float(self.mid + self.half if high is None else high)
+        width = hi - lo
+        while self(lo) > value:
+            lo, width = lo - width, 2.0 * width
+        while self(hi) < value:
+            hi, width = hi + width, 2.0 * width
+        u = 0.5 * (lo + hi)
+        for _ in range(200):
+            error = float(self(u)) - value
+            if abs(error) <= tol or hi - lo <= tol:
+                break
+            if error < 0.0:
+                lo = u
+            else:
+                hi = u
+            step = u - error / self.slope_at(u)
+            u = step if lo < step < hi else 0.5 * (lo + hi)
+        return u
+
+
+class Mlp:
+    def __init__(self, tensors, prefix, activation):
+        self.layers = []
+        i = 0
+        while f'{prefix}.{i}.weight' in tensors:
+            self.layers.append((tensors[f'{prefix}.{i}.weight'].T.copy(),
+                                tensors[f'{prefix}.{i}.bias']))
+            i += 2
+        self.activation = np.tanh if activation == 'tanh' else elu
+
+    def __call__(self, v):
+        for weight, bias in self.layers[:-1]:
+            v = self.activation(v @ weight + bias)
+        weight, bias = self.layers[-1]
+        return v @ weight + bias
+
+
+def elu(v):
+    return np.where(v > 0.0, v, np.expm1(np.minimum(v, 0.0)))
+
+
+class LiftedModel:
+    """psi_x, psi_u and its inverse, and the lifted (A, B, C), from a model directory."""
+
+    def __init__(self, tensors, config, metadata=None):
+        self.path = None              # the directory it was loaded from, if any
+        self.config = config
+        self.metadata = metadata or {}
+        self.n = config.state_dim
+        self.mean, self.std = tensors['state_mean'], tensors['state_std']
+        self.lift = Mlp(tensors, 'lift', config.activation)
+        self.input_gain = Mlp(tensors, 'input_gain', config.activation)
+        self.input_map = MonotoneMap(tensors, config.tension_range)
+        if config.anchor_equilibrium:
+            self.anchor_at(dynamics.equilibrium_state(self.n), dynamics.EQUILIBRIUM_TENSION)
+        self.A, self.B = tensors['A'], tensors['B']
+        self.C = np.eye(self.n, config.lifted_dim)
+
+    def anchor_at(self, x, u):
+        """Shift the last biases so Phi(x) = 0 and psi_uu(u) = 0: the torch model's
+        `anchor_equilibrium`, folded into the constants once instead of subtracted per call."""
+        weight, bias = self.lift.layers[-1]
+        self.lift.layers[-1] = (weight, bias - self.lift((x - self.mean) / self.std))
+        self.input_map.offset -= float(self.input_map(u))
+
+    @classmethod
+    def load(cls, path):
+        """A model directory, or the name of a shipped model (`shipped.resolve`)."""
+        from tsr_koopman_ctrl.model.shipped import resolve
+        directory = resolve(path)
+        model = cls(*model_file.load(directory))
+        model.path = str(directory)
+        return model
+
+    def reference(self):
+        """(z_d, u_hat_d) = (psi_x(0), psi_u(0, 3)): the deployed equilibrium, lifted."""
+        origin = dynamics.equilibrium_state(self.n)
+        return self.psi_x(origin), float(self.psi_u(origin, dynamics.EQUILIBRIUM_TENSION))
+
+    def state_weight(self, spec):
+        """Q' on the lifted state: 'lifted' (I), 'state' (C^T C) or C^T diag(q) C for q of n."""
+        c = self.C
+        if isinstance(spec, str):
+            weights = {'lifted': np.eye(c.shape[1]), 'state': c.T @ c}
+            if spec not in weights:
+                raise ValueError(f"state weight must be 'lifted', 'state' or {self.n} weights, "
+                                 f'got {spec!r}')
+            return weights[spec]
+        q = np.asarray(spec, dtype=float)
+        if q.shape != (self.n,) or not np.all(q >= 0.0):
+            raise ValueError(f'state weights must be {self.n} numbers >= 0, got {spec!r}')
+        return c.T @ np.diag(q) @ c
+
+    def psi_x(self, x):
+        x = np.asarray(x, dtype=float)
+        return np.concatenate([x, self.lift((x - self.mean) / self.std)], axis=-1)
+
+    def psi_ux(self, x):
+        x = np.asarray(x, dtype=float)
+        raw = self.input_gain((x - self.mean) / self.std)[..., 0]
+        return self.config.min_input_gain + softplus(raw)
+
+    def psi_u(self, x, u):
+        return self.psi_ux(x) * self.input_map(u)
+
+    def tension_from_input(self, x, u_hat):
+        """Invert psi_u at state x: the tension u with psi_u(x, u) = u_hat (not clamped)."""
+        return self.input_map.inverse(u_hat / float(self.psi_ux(x)))
+
+    def predict(self, x0, u):
+        """Roll the lifted system from states x0 (N, n) under tensions u (N, T): the states read
+        through C, (N, T + 1, n). The input gain uses the predicted state, as in training."""
+        z = self.psi_x(np.atleast_2d(x0))
+        states = [z[:, :self.n]]
+        for k in range(np.shape(u)[1]):
+            z = z @ self.A.T + self.psi_u(z[:, :self.n], u[:, k])[:, None] * self.B.T
+            states.append(z[:, :self.n])
+        return np.stack(states, axis=1)
+
+    def local_linear_model(self, x=None, eps=1e-6):
+        """(J, B_x): the state part of the lifted model's one-step map linearised at x (default:
+        the equilibrium) in the lifted input, x+ ~ J x + B_x u_hat; J = A_x dpsi_x/dx by
+        central differences."""
+        x = dynamics.equilibrium_state(self.n) if x is None else np.asarray(x, dtype=float)
+        steps = eps * np.eye(self.n)
+        dpsi = (self.psi_x(x + steps) - self.psi_x(x - steps)).T / (2.0 * eps)
+        return self.A[:self.n] @ dpsi, self.B[:self.n]
+
+    def controllability_rank(self):
+        return controllability_rank(self.A, self.B)
+
+
+def controllability_matrix(a, b, normalise=True):
+    """[B, AB, ..., A^(N-1) B] with (optionally) each column scaled to unit norm."""
+    columns = [b[:, 0]]
+    for _ in range(a.shape[0] - 1):
+        columns.append(a @ columns[-1])
+        if normalise:
+            columns[-1] = columns[-1] / max(np.linalg.norm(columns[-1]), 1e-300)
+    if normalise:
+        columns[0] = columns[0] / max(np.linalg.norm(columns[0]), 1e-300)
+    return np.stack(columns, axis=1)
+
+
+def controllability_rank(a, b):
+    """Numerical rank (numpy's default tolerance) of the column-normalised controllability
+    matrix; normalising the columns does not change the rank but keeps A^k B representable."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)   # float64 tolerance
+    return int(np.linalg.matrix_rank(controllability_matrix(a, b)))

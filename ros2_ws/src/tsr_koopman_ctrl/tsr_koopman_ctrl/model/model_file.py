@@ -1,0 +1,204 @@
+"""The deep Koopman model file: its hyperparameters, tensor layout, writer and reader.
+
+A model is a directory::
+
+    <model>/weights.safetensors   every tensor (networks, A, B, state normalisation), no pickle
+    <model>/model.json            format version, config, metrics, data provenance, versions
+
+safetensors cannot carry code, so loading a model never executes anything. The reader checks
+the names and shapes of every tensor against the config and turns any problem (missing, truncated,
+corrupt, wrong shape, non-finite) into one `ModelFileError` line naming the file.
+
+Reading needs numpy and safetensors only, not torch: the controller evaluates the networks in
+numpy (`tsr_koopman_ctrl.model.lifted`).
+"""
+
+import dataclasses
+import json
+import pathlib
+
+import numpy as np
+
+FORMAT = 'tsr-koopman-model'
+FORMAT_VERSION = 1
+WEIGHTS_FILE = 'weights.safetensors'
+META_FILE = 'model.json'
+ACTIVATIONS = ('tanh', 'elu')
+#: Options of earlier versions, no longer offered: a model file may still name them with the value
+#: that means "off" (they are then ignored); any other value is refused.
+RETIRED_OPTIONS = {'scale_free_lifted_loss': False}
+
+
+class ModelFileError(ValueError):
+    """A model that cannot be used; the message is one line naming the file."""
+
+
+@dataclasses.dataclass(frozen=True)
+class KoopmanConfig:
+    """Every hyperparameter of the model and its training, saved with the model."""
+
+    state_dim: int = 4
+    lift_dim: int = 36            # K: learned observables Phi(x); the lifted state has K + n
+    hidden: int = 128             # Phi: `layers` hidden layers of `hidden` units
+    layers: int = 4
+    input_hidden: int = 128       # psi_ux (the state-dependent input gain): same shape
+    input_layers: int = 4
+    input_terms: int = 8          # tanh terms of the monotone input map psi_uu
+    activation: str = 'tanh'
+    #: psi_ux(x) = min_input_gain + softplus(net(x)) keeps the input gain away from zero, so
+    #: u = psi_uu^-1(u_hat / psi_ux(x)) is always defined.
+    min_input_gain: float = 0.05
+    tension_range: tuple = (0.0, 5.0)
+    h: float = 0.01
+    # Loss L = w_rec L_rec + w_lift L_lift + w_ctrb L_ctrb (paper: 0.5, 1.0, 0.1).
+    weight_reconstruction: float = 0.5
+    weight_lifted: float = 1.0
+    weight_controllability: float = 0.1
+    #: Not in the paper: weight of L_eq, the drift of the lifted model at the known equilibrium
+    #: (x = 0, u = 3), per unit tau: z_d = psi_x(0) must be a fixed point for LQR about it.
+    weight_equilibrium: float = 0.0
+    #: Not in the paper: Phi(x) - Phi(0) and psi_uu(u) - psi_uu(3) in place of Phi and psi_uu,
+    #: so z = 0 is psi_x(0) and u_hat = 0 is psi_u(0, 3): the known equilibrium is an exact
+    #: fixed point of the lifted model (no drift at the state LQR and MPC regulate to).
+    anchor_equilibrium: bool = False
+    #: Not in the paper: weight of L_step, the relative one-step error from every measured state
+    #: (what a controller that lifts each measurement relies on).
+    weight_one_step: float = 0.0
+    gamma: float = 1.0 - 1e-3
+    #: L_ctrb is near zero once every normalised singular value of the controllability matrix
+    #: is well above this (a differentiable stand-in for "full rank"; rank reported separately).
+    controllability_tol: float = 1e-4
+    # Training.
+    epochs: int = 30
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    final_learning_rate: float = 1e-5
+    validation_fraction: float = 0.1
+    seed: int = 0
+
+    def __post_init__(self):
+        positive = ('state_dim', 'lift_dim', 'hidden', 'layers', 'input_hidden', 'input_layers',
+                    'input_terms', 'epochs', 'batch_size')
+        for name in positive:
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f'activation must be one of {ACTIVATIONS}, got {self.activation!r}')
+        if not 0.0 < self.gamma <= 1.0:
+            raise ValueError(f'gamma must be in (0, 1], got {self.gamma}')
+        if not self.min_input_gain > 0.0:
+            raise ValueError('min_input_gain must be > 0 (psi_ux must stay away from zero)')
+
+    @property
+    def lifted_dim(self):
+        return self.lift_dim + self.state_dim
+
+    @classmethod
+    def from_dict(cls, values):
+        known = {f.name for f in dataclasses.fields(cls)}
+        values = {k: v for k, v in values.items()
+                  if not (k in RETIRED_OPTIONS and v == RETIRED_OPTIONS[k])}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f'unknown config keys {sorted(unknown)}')
+        values = dict(values)
+        if 'tension_range' in values:
+            values['tension_range'] = tuple(values['tension_range'])
+        return cls(**values)
+
+
+def mlp_shapes(prefix, inputs, hidden, layers, outputs):
+    """Tensor names and shapes of an MLP stored as torch.nn.Sequential(Linear, act, ...)."""
+    sizes = [inputs] + [hidden] * layers + [outputs]
+    shapes = {}
+    for i in range(len(sizes) - 1):
+        shapes[f'{prefix}.{2 * i}.weight'] = (sizes[i + 1], sizes[i])
+        shapes[f'{prefix}.{2 * i}.bias'] = (sizes[i + 1],)
+    return shapes
+
+
+def expected_shapes(config):
+    """Name -> shape of every tensor a model with this config stores."""
+    n, lifted, terms = config.state_dim, config.lifted_dim, config.input_terms
+    shapes = {'state_mean': (n,), 'state_std': (n,), 'A': (lifted, lifted), 'B': (lifted, 1),
+              'input_map.slope': (), 'input_map.offset': (), 'input_map.amplitude': (terms,),
+              'input_map.steepness': (terms,), 'input_map.shift': (terms,)}
+    shapes.update(mlp_shapes('lift', n, config.hidden, config.layers, config.lift_dim))
+    shapes.update(mlp_shapes('input_gain', n, config.input_hidden, config.input_layers, 1))
+    return shapes
+
+
+def save(directory, tensors, config, metadata):
+    """Write a model: `tensors` name -> numpy array (checked against `config`), `metadata` a
+    JSON-able dict (metrics, provenance, ...). Files are replaced atomically."""
+    from safetensors.numpy import save_file
+    directory = pathlib.Path(directory)
+    check_tensors(tensors, config, directory / WEIGHTS_FILE)
+    directory.mkdir(parents=True, exist_ok=True)
+    # np.array, not ascontiguousarray: the latter turns 0-d scalars into shape (1,).
+    arrays = {name: np.array(value, dtype=np.float32) for name, value in tensors.items()}
+    meta = {'format': FORMAT, 'version': FORMAT_VERSION, 'config': dataclasses.asdict(config),
+            **metadata}
+    for name, write in ((WEIGHTS_FILE, lambda p: save_file(arrays, str(p))),
+                        (META_FILE, lambda p: p.write_text(json.dumps(meta, indent=2) + '\n'))):
+        partial = directory / (name + '.partial')
+        write(partial)
+        partial.replace(directory / name)
+
+
+def load(directory):
+    """Read a model: returns (tensors as float64 numpy arrays, config, metadata dict)."""
+    directory = pathlib.Path(directory)
+    meta_path, weights_path = directory / META_FILE, directory / WEIGHTS_FILE
+    if not directory.is_dir():
+        raise ModelFileError(f'{directory}: no such model directory')
+    meta = read_metadata(meta_path)
+    try:
+        config = KoopmanConfig.from_dict(meta['config'])
+    except (KeyError, TypeError, ValueError) as error:
+        raise ModelFileError(f'{meta_path}: bad config ({error})')
+    tensors = read_weights(weights_path)
+    check_tensors(tensors, config, weights_path)
+    return {k: v.astype(np.float64) for k, v in tensors.items()}, config, meta
+
+
+def read_metadata(path):
+    try:
+        meta = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ModelFileError(f'{path}: missing')
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ModelFileError(f'{path}: not valid JSON ({error})')
+    if not isinstance(meta, dict) or meta.get('format') != FORMAT:
+        raise ModelFileError(f'{path}: not a {FORMAT} metadata file')
+    if meta.get('version') != FORMAT_VERSION:
+        raise ModelFileError(f'{path}: format version {meta.get("version")}, this code reads '
+                             f'{FORMAT_VERSION}')
+    return meta
+
+
+def read_weights(path):
+    from safetensors import SafetensorError
+    from safetensors.numpy import load_file
+    try:
+        return load_file(str(path))
+    except FileNotFoundError:
+        raise ModelFileError(f'{path}: missing')
+    except (SafetensorError, OSError, ValueError) as error:
+        raise ModelFileError(f'{path}: corrupt or truncated ({error})')
+
+
+def check_tensors(tensors, config, path):
+    expected = expected_shapes(config)
+    missing = sorted(set(expected) - set(tensors))
+    extra = sorted(set(tensors) - set(expected))
+    if missing or extra:
+        raise ModelFileError(f'{path}: tensors do not match the config (missing {missing}, '
+                             f'unexpected {extra})')
+    for name, shape in expected.items():
+        value = np.asarray(tensors[name])
+        if value.shape != shape:
+            raise ModelFileError(f'{path}: {name} has shape {value.shape}, the config needs '
+                                 f'{shape}')
+        if not np.all(np.isfinite(value)):
+            raise ModelFileError(f'{path}: {name} has non-finite values')

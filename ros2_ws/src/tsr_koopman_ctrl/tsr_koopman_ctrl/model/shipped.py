@@ -1,0 +1,46 @@
+"""Where models are found: a directory given by path, or a model shipped with the package.
+
+The shipped models are installed to ``share/tsr_koopman_ctrl/models/<name>`` (setup.py's
+data_files) and found through the ament index, so a node started from any directory (as
+``ros2 run`` users do) loads them by name.
+"""
+
+import os
+
+PACKAGE = 'tsr_koopman_ctrl'
+#: The model the controller uses unless told otherwise (models/README.md says how it was trained).
+DEFAULT_MODEL = 'koopman_default'
+
+
+def installed_models_dir():
+    """share/tsr_koopman_ctrl/models of the sourced workspace, or None if it is not found."""
+    try:
+        from ament_index_python.packages import (get_package_share_directory,
+                                                 PackageNotFoundError)
+    except ImportError:
+        return None
+    try:
+        return os.path.join(get_package_share_directory(PACKAGE), 'models')
+    except PackageNotFoundError:
+        return None
+
+
+def resolve(model):
+    """The directory of `model`: an existing directory as given, else a shipped model's name.
+
+    Raises ValueError naming every path tried.
+    """
+    model = os.fspath(model)
+    tried = [os.path.abspath(model)]
+    if os.path.isdir(model):
+        return model
+    shipped = installed_models_dir()
+    if shipped is not None and not os.path.isabs(model):
+        candidate = os.path.join(shipped, model)
+        if os.path.isdir(candidate):
+            return candidate
+        tried.append(candidate)
+    elif shipped is None:
+        tried.append(f'share/{PACKAGE}/models (package not found: is the workspace sourced?)')
+    from tsr_koopman_ctrl.model.model_file import ModelFileError
+    raise ModelFileError(f'{model}: no such model directory (tried {", ".join(tried)})')

@@ -1,0 +1,117 @@
+"""Recorder node: raw CDR subscriptions written as they arrive into a rosbag2-layout MCAP bag.
+
+Topics are subscribed once a publisher shows their type (the loop's own topics at start, their
+types being known); the subscription is reliable and keeps all messages (nothing dropped on a
+burst), transient local where every publisher is. Relative topic names resolve in the node's
+namespace, as the loop's publishers' do. SIGINT and SIGTERM close the bag cleanly; the bag format
+itself is in `tsr_koopman_ctrl.bag`.
+"""
+
+import datetime
+import importlib
+import os
+import sys
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from tsr_sim.ros_io import declare, run_node
+from tsr_sim.wire import LOOP_TOPIC_TYPES
+
+from tsr_koopman_ctrl.bag import definitions
+from tsr_koopman_ctrl.bag.writer import BagWriter
+
+DEFAULT_TOPICS = list(LOOP_TOPIC_TYPES)
+DEFAULT_TYPES = list(LOOP_TOPIC_TYPES.values())
+
+
+def message_class(type_name):
+    """'pkg/msg/Type' -> the generated Python class."""
+    package, kind, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{package}.{kind}'), name)
+
+
+def offered_qos(endpoint):
+    q = endpoint.qos_profile
+    return definitions.qos_dict(q.history, q.depth, q.reliability, q.durability,
+                                q.liveliness, q.deadline.nanoseconds, q.lifespan.nanoseconds,
+                                q.liveliness_lease_duration.nanoseconds,
+                                q.avoid_ros_namespace_conventions)
+
+
+class RecorderNode(Node):
+
+    def __init__(self):
+        super().__init__('tsr_recorder')
+        self.wanted = [self.resolve_topic_name(t) for t in declare(
+            self, 'topics', DEFAULT_TOPICS, 'topics to record (relative names resolve in the '
+            "node's namespace)")]
+        defaults = self.wanted == [self.resolve_topic_name(t) for t in DEFAULT_TOPICS]
+        types = declare(self, 'types', DEFAULT_TYPES if defaults else [''],
+                        'message type of each topic (pkg/msg/Type), subscribed at start so '
+                        "nothing is missed; '' or a shorter list: discovered from publishers")
+        directory = declare(self, 'output_dir', 'bags', 'directory the bag is created in')
+        name = declare(self, 'bag_name', '', 'bag directory name (empty: tsr_<UTC time>)')
+        name = name or datetime.datetime.now(datetime.timezone.utc).strftime('tsr_%Y%m%d_%H%M%S')
+        self.writer = BagWriter(
+            os.path.join(directory, name),
+            max_file_bytes=declare(self, 'max_file_size', 0,
+                                   'split after this many bytes (0: never)', 0, 2 ** 62),
+            max_file_seconds=declare(self, 'max_file_duration', 0.0,
+                                     'split after this many seconds (0: never)', 0.0, 1e9),
+            chunk_size=declare(self, 'chunk_size', 1 << 20,
+                               'MCAP chunk size in bytes: bounds what a crash can lose',
+                               256, 1 << 30))
+        self.subscribed = {}
+        self.create_timer(declare(self, 'discovery_period', 0.2,
+                                  'seconds between looks for new topics', 0.01, 60.0),
+                          self.discover)
+        self.get_logger().info(f'recording {self.wanted} into {self.writer.directory}')
+        for topic, type_name in zip(self.wanted, types):
+            if type_name:
+                self.subscribe(topic, type_name, publishers=[])
+        self.discover()
+
+    def discover(self):
+        if len(self.subscribed) == len(self.wanted):
+            return
+        types = dict(self.get_topic_names_and_types())
+        for topic in self.wanted:
+            if topic in self.subscribed or topic not in types:
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue
+            self.subscribe(topic, types[topic][0], publishers)
+
+    def subscribe(self, topic, type_name, publishers):
+        """Subscribe raw; with no publisher known yet: reliable, volatile (matches any)."""
+        qos = [offered_qos(p) for p in publishers]
+        self.writer.add_topic(definitions.TopicInfo(
+            name=topic, type=type_name, definition=definitions.message_definition(type_name),
+            type_hash=definitions.type_hash(type_name), offered_qos=qos))
+        latched = bool(publishers) and all(
+            p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
+        profile = QoSProfile(
+            history=HistoryPolicy.KEEP_ALL, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+        if any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for p in publishers):
+            profile.reliability = ReliabilityPolicy.BEST_EFFORT
+        self.subscribed[topic] = self.create_subscription(
+            message_class(type_name), topic,
+            lambda data, t=topic: self.writer.write(t, data, self.get_clock().now().nanoseconds),
+            profile, raw=True)
+        self.get_logger().info(f'recording {topic} [{type_name}]')
+
+    def close(self):
+        self.writer.close()
+        counts = ', '.join(f'{t}: {n}' for t, n in self.writer.topic_counts.items())
+        print(f'[tsr_recorder] bag {self.writer.directory} closed: '
+              f'{self.writer.message_count} messages ({counts})', flush=True)
+
+
+def main(args=None):
+    return run_node(RecorderNode, on_exit=RecorderNode.close, args=args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

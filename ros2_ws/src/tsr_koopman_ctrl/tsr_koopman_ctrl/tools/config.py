@@ -1,0 +1,48 @@
+"""Write the controller node's example parameter file from the laws' settings classes.
+
+    python -m tsr_koopman_ctrl.tools.config > ros2_ws/src/tsr_koopman_ctrl/config/controller.yaml
+
+The file is derived, never edited by hand: a test checks it equals this output.
+"""
+
+import sys
+
+from tsr_koopman_ctrl.control import CONTROLLERS
+from tsr_koopman_ctrl.control.settings import fields
+
+HEADER = """\
+# Example parameters for tsr_koopman_ctrl/controller_node (the defaults), written by
+# `python -m tsr_koopman_ctrl.tools.config` from the laws' settings classes: do not edit by hand.
+#   ros2 run tsr_koopman_ctrl controller_node --ros-args --params-file controller.yaml
+# Only the settings of the law named by `controller` are declared by the node.
+"""
+
+
+def scalar(value):
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return value
+    return repr(float(value)) if isinstance(value, float) else str(value)
+
+
+def example_yaml(node_name='tsr_controller', default_law='koopman_mpc'):
+    lines = [HEADER.rstrip('\n'), f'{node_name}:', '  ros__parameters:',
+             f'    controller: {default_law}   # one of {", ".join(sorted(CONTROLLERS))}',
+             '    state_timeout: 5.0        # s without a state -> safe_tension']
+    for law in sorted(CONTROLLERS):
+        lines.append(f'    {law}:')
+        for name, default, meta in fields(CONTROLLERS[law].Settings):
+            value = (f'[{", ".join(scalar(v) for v in default)}]'
+                     if isinstance(default, tuple) else scalar(default))
+            lines += [f'      # {meta["description"]}', f'      {name}: {value}']
+    return '\n'.join(lines) + '\n'
+
+
+def main(argv=None):
+    sys.stdout.write(example_yaml())
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

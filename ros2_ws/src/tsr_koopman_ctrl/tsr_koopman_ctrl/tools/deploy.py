@@ -1,0 +1,204 @@
+"""The main job: deploy the TSR in closed loop over DDS and leave a bag, plots and a summary.
+
+Starts the simulator (lockstep), the controller and the recorder as three processes on one DDS
+domain, waits for the simulator to finish, closes the recorder cleanly, then reads the loop back
+from the bag: every figure of the table (settle time, swing, tensions, the controller's compute
+times, a halt) comes from the record, not from the processes' memory or logs.
+
+    python -m tsr_koopman_ctrl.tools.deploy [--controller koopman_mpc] [--model DIR|NAME]
+        [--set LAW.SETTING=VALUE ...] [--steps 2000] [--x0 ...] [--namespace NS] [--compare]
+
+The default is koopman_mpc on the shipped model (koopman_default), which deploys into the 1% zone
+from every comparison start (README).
+"""
+
+import argparse
+import datetime
+import os
+import random
+import sys
+import time
+
+import numpy as np
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.bag import read_loop
+from tsr_koopman_ctrl.control import CONTROLLERS
+from tsr_koopman_ctrl.control.registry import law_class
+from tsr_koopman_ctrl.control.settings import parse_value
+from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
+from tsr_koopman_ctrl.evaluation.plots import plot_deployments
+from tsr_koopman_ctrl.tools.launcher import NodeProcess
+from tsr_koopman_ctrl.tools.report import write_report
+
+
+def parse_args(argv):
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--controller', default='koopman_mpc', choices=sorted(CONTROLLERS))
+    parser.add_argument('--model', help='model directory or shipped model name for the '
+                        'koopman_* laws (default: their `model` setting, koopman_default)')
+    parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
+                        help='a law setting (repeatable), e.g. koopman_mpc.horizon=8; '
+                        'sequences as a,b,c')
+    parser.add_argument('--steps', type=int, default=2000,
+                        help='simulation steps of h = 0.01 tau (paper: 2000)')
+    parser.add_argument('--x0', type=float, nargs=4, default=dynamics.PAPER_INITIAL_STATE,
+                        metavar=('THETA', 'THETA_RATE', 'L_MINUS_1', 'L_RATE'),
+                        help='dimensionless initial state (paper: 0 0 -0.99 0.5)')
+    parser.add_argument('--compare', action='store_true',
+                        help='every controller from every comparison start, one table and a '
+                        'plot per start (ignores --controller and --x0)')
+    parser.add_argument('--out', default='out', help='directory for plots, summary and logs')
+    parser.add_argument('--bags', default='bags', help='directory the bag is written in')
+    parser.add_argument('--namespace', default=None, help='ROS namespace of the three nodes')
+    parser.add_argument('--domain', type=int, default=None,
+                        help='ROS_DOMAIN_ID (default: a random one in 120..219)')
+    parser.add_argument('--timeout', type=float, default=900.0,
+                        help='wall seconds before the run is abandoned')
+    args = parser.parse_args(argv)
+    try:
+        args.law_settings = law_settings(args.set, args.model)
+    except ValueError as error:
+        parser.error(str(error))
+    if not dynamics.in_domain(np.asarray(args.x0, dtype=float)):
+        parser.error(f'--x0 {list(args.x0)} is outside the model domain (finite, l - 1 > -1)')
+    return args
+
+
+def law_settings(assignments, model):
+    """{law: {setting: value}} from --set LAW.SETTING=VALUE and --model (checked here, so a
+    typo fails before any process starts)."""
+    settings = {}
+    for assignment in assignments:
+        key, sep, text = assignment.partition('=')
+        law, dot, name = key.partition('.')
+        if not (sep and dot):
+            raise ValueError(f'--set takes LAW.SETTING=VALUE, got {assignment!r}')
+        settings.setdefault(law, {})[name] = parse_value(law_class(law).Settings, name, text)
+    if model is not None:
+        for law, cls in CONTROLLERS.items():
+            if 'model' in {f for f in cls.Settings.__dataclass_fields__}:
+                path = os.path.abspath(model) if os.path.isdir(model) else model
+                settings.setdefault(law, {})['model'] = path
+    for law, values in settings.items():
+        law_class(law).Settings(**values)   # ranges and choices, one line if wrong
+    return settings
+
+
+def stamp():
+    return datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%d_%H%M%S')
+
+
+def run(args, controller, x0, run_dir, name):
+    """One deployment over DDS; returns the bag path. Node logs go to run_dir."""
+    if os.path.abspath(args.out) == os.path.abspath(args.bags):
+        raise ValueError('--out and --bags must differ: a bag directory holds only the bag')
+    os.makedirs(run_dir, exist_ok=True)
+    domain = args.domain if args.domain is not None else random.randint(120, 219)
+    print(f'[deploy] {controller} from x0 = {[float(v) for v in x0]} for {args.steps} steps '
+          f'(tau {args.steps * dynamics.PAPER_STEP:g}) on ROS_DOMAIN_ID {domain}', flush=True)
+
+    def start(package, exe, node, params, console=False):
+        log = None if console else os.path.join(run_dir, f'{node}.log')
+        return NodeProcess(package, exe, node, params, domain_id=domain, log_path=log,
+                           namespace=args.namespace)
+
+    recorder = start('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
+                     {'output_dir': args.bags, 'bag_name': name})
+    law = {controller: args.law_settings[controller]} \
+        if args.law_settings.get(controller) else {}
+    control = start('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
+                    {'controller': controller, 'wait_for_subscribers': 2, **law})
+    sim = start('tsr_sim', 'sim_node', 'tsr_sim',
+                {'mode': 'lockstep', 'initial_state': [float(v) for v in x0],
+                 'max_steps': args.steps, 'exit_on_finish': True, 'wait_for_subscribers': 2,
+                 'progress_every': 100}, console=True)
+    try:
+        watch(sim, (control, recorder), args.timeout)
+    except KeyboardInterrupt:
+        print('[deploy] interrupted: closing the bag', flush=True)
+    finally:
+        for proc in (sim, control, recorder):
+            proc.stop()
+    return os.path.join(args.bags, name)
+
+
+def watch(sim, others, timeout):
+    """Wait for the simulator to finish; fail early, with the log's tail, if another node dies
+    or time runs out."""
+    deadline = time.monotonic() + timeout
+    while sim.running():
+        dead = [p for p in others if not p.running()]
+        if dead:
+            tails = '\n'.join(f'--- {p.name} exited with {p.process.returncode}; last lines of '
+                              f'{p.log_path}:\n{p.log_tail().rstrip()}' for p in dead)
+            raise RuntimeError(f'{", ".join(p.name for p in dead)} exited early\n{tails}')
+        if time.monotonic() > deadline:
+            raise TimeoutError(f'the deployment did not finish within {timeout} s')
+        time.sleep(0.1)
+    if sim.process.returncode != 0:
+        raise RuntimeError(f'{sim.name} exited with {sim.process.returncode} (its log is above)')
+
+
+def summarise(bag_path, controller, x0, planned_steps, namespace=None):
+    """Figures of a run, read back from its bag alone."""
+    loop = read_loop(bag_path, namespace=namespace)
+    print(f'[deploy] bag {bag_path}: {loop.report.summary()}', flush=True)
+    x0 = [float(v) for v in x0]
+    row = run_figures(loop.tau, loop.x, loop.u[:-1], start=x0, halted=loop.halted)
+    compute_us = loop.compute_time * 1e6
+    status = loop.controller_status
+    row.update(controller=controller, x0=x0, bag=bag_path, steps=int(loop.step[-1]),
+               planned_steps=planned_steps, halt_tau=loop.halt_tau,
+               compute_median_us=float(np.median(compute_us)) if compute_us.size else None,
+               compute_p99_us=float(np.percentile(compute_us, 99)) if compute_us.size else None,
+               solver_fallbacks=status.solver_fallbacks if status else None,
+               clamped=status.clamped if status else None)
+    return row, (loop.tau, loop.x, loop.u[:-1])
+
+
+def deploy_one(args):
+    name = f'deploy_{args.controller}_{stamp()}'
+    run_dir = os.path.join(args.out, name)
+    bag_path = run(args, args.controller, args.x0, run_dir, name)
+    row, loop = summarise(bag_path, args.controller, args.x0, args.steps, args.namespace)
+    plot_deployments({args.controller: loop}, os.path.join(run_dir, 'deployment.png'),
+                     title=f'TSR deployment over DDS: {args.controller}')
+    write_report(run_dir, [row])
+    return [row]
+
+
+def compare(args):
+    """Every controller from every comparison start, each a three-process deployment."""
+    compare_dir = os.path.join(args.out, f'compare_{stamp()}')
+    rows = []
+    for index, x0 in enumerate(COMPARISON_STARTS):
+        runs = {}
+        for controller in sorted(CONTROLLERS):
+            name = f'compare_{controller}_x{index}_{stamp()}'
+            bag_path = run(args, controller, x0, os.path.join(compare_dir, name), name)
+            row, runs[controller] = summarise(bag_path, controller, x0, args.steps,
+                                              args.namespace)
+            rows.append(row)
+        plot_deployments(runs, os.path.join(compare_dir, f'x0_{index}.png'),
+                         title=f'TSR deployment over DDS from x0 = {list(x0)}')
+    write_report(compare_dir, rows)
+    return rows
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    try:
+        rows = compare(args) if args.compare else deploy_one(args)
+    except (ValueError, RuntimeError, TimeoutError, FileNotFoundError) as err:
+        print(f'[deploy] failed: {err}', file=sys.stderr)
+        return 1
+    if not args.compare and rows[0]['halted']:
+        print(f'[deploy] the state left the model domain at tau {rows[0]["halt_tau"]:.2f}',
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""Start the project's nodes as separate processes (there is no ros2 launch in the wheel set-up).
+
+ROS-free: it finds `<prefix>/lib/<pkg>/<exe>` through the ament index, exactly where `ros2 run`
+looks on a stock install, writes the parameters to a YAML `--params-file` and manages the process.
+Used by the main job, the comparison runs and the integration tests.
+"""
+
+import os
+import signal
+import subprocess
+import tempfile
+
+from ament_index_python.packages import get_package_prefix
+import yaml
+
+
+def executable(package, name):
+    path = os.path.join(get_package_prefix(package), 'lib', package, name)
+    if not os.access(path, os.X_OK):
+        raise FileNotFoundError(f'{package} {name}: no executable at {path}; build the workspace')
+    return path
+
+
+def write_params(node_name, params, directory):
+    """Write `params` for node `node_name` as a ROS 2 parameter file; return its path."""
+    path = os.path.join(directory, f'{node_name}.params.yaml')
+    with open(path, 'w') as f:
+        yaml.safe_dump({'/**': {'ros__parameters': params}}, f)
+    return path
+
+
+class NodeProcess:
+    """One node in its own process; stop() sends SIGINT, then SIGKILL after a grace period."""
+
+    def __init__(self, package, exe, node_name, params=None, domain_id=None, log_path=None,
+                 extra_args=(), namespace=None, cwd=None):
+        self.name = node_name
+        self.log_path = log_path
+        self._tmp = tempfile.TemporaryDirectory(prefix=f'{node_name}-')
+        cmd = [executable(package, exe), '--ros-args', '-r', f'__node:={node_name}']
+        if namespace:
+            cmd += ['-r', f'__ns:={namespace}']
+        if params:
+            cmd += ['--params-file', write_params(node_name, params, self._tmp.name)]
+        cmd += list(extra_args)
+        env = dict(os.environ)
+        if domain_id is not None:
+            env['ROS_DOMAIN_ID'] = str(domain_id)
+        self._log = open(log_path, 'w') if log_path else None   # None: this console
+        self.process = subprocess.Popen(cmd, env=env, stdout=self._log,
+                                        stderr=subprocess.STDOUT, cwd=cwd)
+
+    def log_tail(self, lines=10):
+        """The last lines of the node's log ('' when it logs to the console)."""
+        if not self.log_path:
+            return ''
+        try:
+            with open(self.log_path, errors='replace') as log:
+                return ''.join(log.readlines()[-lines:])
+        except OSError:
+            return ''
+
+    def running(self):
+        return self.process.poll() is None
+
+    def wait(self, timeout=None):
+        return self.process.wait(timeout)
+
+    def kill(self):
+        """SIGKILL: no clean-up at all (what a crash looks like)."""
+        self.process.kill()
+        return self.process.wait()
+
+    def stop(self, sig=signal.SIGINT, grace=10.0):
+        """Ask the node to finish cleanly; kill it if it does not within `grace` seconds."""
+        if self.running():
+            self.process.send_signal(sig)
+            try:
+                self.process.wait(grace)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        if self._log is not None:
+            self._log.close()
+        self._tmp.cleanup()
+        return self.process.returncode

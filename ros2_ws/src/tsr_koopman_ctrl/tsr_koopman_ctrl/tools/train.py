@@ -1,0 +1,111 @@
+"""Train a deep Koopman model: ``python -m tsr_koopman_ctrl.tools.train --out models/NAME``.
+
+Data: sampled with the paper's settings (``--trajectories``, ``--data-seed``) and/or read from
+dataset files (``--data FILE``, repeatable). A validation split is held out of training; a
+separate test set (another seed, never trained on) gives the metrics stored with the model.
+Each epoch prints the loss terms and the validation 30-step error; the best epoch is the saved
+model; ``<out>/checkpoint.pt`` lets ``--resume`` carry on after an interruption.
+"""
+
+import argparse
+import sys
+import time
+
+import torch
+
+from tsr_koopman_ctrl.learning import dataset as datasets
+from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
+from tsr_koopman_ctrl.model import model_file
+
+
+def load_data(args):
+    parts = [datasets.load(path) for path in args.data]
+    if args.equilibrium_trajectories > 0:
+        near, dropped = datasets.sample(datasets.SamplingConfig(
+            trajectories=args.equilibrium_trajectories, seed=args.data_seed + 1,
+            state_low=datasets.EQUILIBRIUM_BOX_LOW, state_high=datasets.EQUILIBRIUM_BOX_HIGH))
+        print(f'sampled {len(near)} trajectories near the equilibrium ({dropped} dropped)',
+              flush=True)
+        parts.append(near)
+    if args.trajectories > 0:
+        sampled, dropped = datasets.sample(datasets.SamplingConfig(
+            trajectories=args.trajectories, seed=args.data_seed))
+        print(f'sampled {len(sampled)} trajectories ({dropped} runaways dropped)', flush=True)
+        parts.append(sampled)
+    if not parts:
+        raise ValueError('no training data: give --trajectories > 0 or --data FILE')
+    return datasets.concatenate(parts)
+
+
+def test_set(trajectories, seed):
+    data, _ = datasets.sample(datasets.SamplingConfig(trajectories=trajectories, seed=seed))
+    return data
+
+
+def config_from_args(args):
+    overrides = {'epochs': args.epochs, 'weight_equilibrium': args.weight_equilibrium,
+                 'weight_one_step': args.weight_one_step,
+                 'anchor_equilibrium': args.anchor_equilibrium or None,
+                 'lift_dim': args.lift_dim, 'seed': args.seed, 'batch_size': args.batch_size,
+                 'learning_rate': args.learning_rate}
+    return model_file.KoopmanConfig(**{k: v for k, v in overrides.items() if v is not None})
+
+
+def parser():
+    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p.add_argument('--out', required=True, help='model directory to write')
+    p.add_argument('--data', action='append', default=[], help='dataset file (repeatable)')
+    p.add_argument('--trajectories', type=int, default=40_000,
+                   help='trajectories to sample with the paper settings (0: none)')
+    p.add_argument('--equilibrium-trajectories', type=int, default=0,
+                   help='extra trajectories from a box around x = 0 (not in the paper)')
+    p.add_argument('--weight-equilibrium', type=float,
+                   help='weight of the equilibrium drift loss (not in the paper; default 0)')
+    p.add_argument('--weight-one-step', type=float,
+                   help='weight of the one-step error from every measured state (not in the '
+                   'paper; default 0)')
+    p.add_argument('--anchor-equilibrium', action='store_true',
+                   help='make x = 0, u = 3 an exact fixed point of the lifted model (not in the '
+                   'paper)')
+    p.add_argument('--data-seed', type=int, default=0)
+    p.add_argument('--test-trajectories', type=int, default=5000)
+    p.add_argument('--test-seed', type=int, default=datasets.TEST_SEED)
+    p.add_argument('--epochs', type=int)
+    p.add_argument('--lift-dim', type=int, help='K, the number of learned observables')
+    p.add_argument('--batch-size', type=int)
+    p.add_argument('--learning-rate', type=float)
+    p.add_argument('--seed', type=int)
+    p.add_argument('--device', help='torch device (default: cuda if present, else cpu)')
+    p.add_argument('--threads', type=int, help='torch CPU threads')
+    p.add_argument('--resume', action='store_true', help='continue from <out>/checkpoint.pt')
+    p.add_argument('--quiet', action='store_true')
+    return p
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        config = config_from_args(args)
+        data = load_data(args)
+        test_data = test_set(args.test_trajectories, args.test_seed)
+        trainer = Trainer(config, args.out, args.device, progress=not args.quiet)
+        start = time.perf_counter()
+        model = trainer.fit(data, resume=args.resume)
+        seconds = time.perf_counter() - start
+    except ValueError as error:
+        print(f'train: {error}', file=sys.stderr)
+        return 2
+    given = sys.argv[1:] if argv is None else argv
+    command = 'python -m tsr_koopman_ctrl.tools.train ' + ' '.join(given)
+    metadata = save_model(args.out, model, config, trainer, data, test_data, seconds, command)
+    metrics = metadata['metrics']
+    print(f"saved {args.out}: best epoch {trainer.best['epoch']}, test 30-step summed MSE "
+          f"{metrics['test']['summed_mse']:.4g}, controllability rank "
+          f"{metrics['controllability_rank']}/{config.lifted_dim}, {seconds:.0f} s")
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

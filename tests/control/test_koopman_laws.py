@@ -1,0 +1,104 @@
+"""Koopman-LQR and Koopman-MPC: on exact lifts against scipy, and the shipped model deploying."""
+
+import numpy as np
+import pytest
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control import closed_loop, KoopmanLqr, KoopmanMpc
+from tsr_koopman_ctrl.control.lqr import discrete_lqr_gain
+from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
+from tsr_koopman_ctrl.model import LiftedModel
+
+
+@pytest.mark.parametrize('x0', COMPARISON_STARTS)
+def test_koopman_mpc_with_the_shipped_model_deploys_into_the_one_percent_zone(x0):
+    controller = KoopmanMpc()   # the default model: the shipped one, found by name
+    states, u = closed_loop(controller, x0, 2000)
+    summary = run_figures(np.arange(2001) * dynamics.PAPER_STEP, states, u)
+    assert summary['settle_tau'] is not None and summary['settle_tau'] < 10.0
+    assert np.all((u >= 0.0) & (u <= 5.0)) and controller.fallbacks == 0
+    assert np.abs(states[:, dynamics.THETA]).max() < 0.85
+
+
+def test_koopman_lqr_gain_stabilises_the_shipped_lifted_model():
+    controller = KoopmanLqr()
+    assert controller.closed_loop_spectral_radius() < 1.0
+
+
+def exact_linear_lifted_model(lift_dim=2):
+    """A LiftedModel whose lifted system is the exact discretised linearisation at x = 0:
+    Phi = 0, psi_ux = 1, psi_uu(u) = u - 3, A = blockdiag(expm(A_c h), 0.5 I), B = [B_d; 0]."""
+    import scipy.linalg
+    from tsr_koopman_ctrl.model import model_file
+    config = model_file.KoopmanConfig(lift_dim=lift_dim, hidden=3, layers=1, input_hidden=3,
+                                      input_layers=1, input_terms=1)
+    tensors = {name: np.zeros(shape) for name, shape in model_file.expected_shapes(config).items()}
+    tensors['state_std'] = np.ones(4)
+    tensors['input_gain.2.bias'] = np.array([np.log(np.expm1(0.95))])   # psi_ux = 1
+    tensors['input_map.slope'] = np.array(np.log(np.expm1(2.5 - 1e-3)))   # slope 1 in u
+    tensors['input_map.offset'] = np.array(-0.5)                           # psi_uu(3) = 0
+    tensors['input_map.amplitude'] = np.array([-50.0])                     # no tanh term
+    a_c, b_c = dynamics.linearise()
+    h = dynamics.PAPER_STEP
+    block = scipy.linalg.expm(np.block([[a_c, b_c], [np.zeros((1, 5))]]) * h)
+    tensors['A'] = scipy.linalg.block_diag(block[:4, :4], 0.5 * np.eye(lift_dim))
+    tensors['B'] = np.r_[block[:4, 4:], np.zeros((lift_dim, 1))]
+    return LiftedModel(tensors, config), block[:4, :4], block[:4, 4:]
+
+
+def test_koopman_lqr_on_an_exact_linear_lift_is_the_discrete_lqr():
+    model, a_d, b_d = exact_linear_lifted_model()
+    assert float(model.input_map(3.0)) == pytest.approx(0.0, abs=1e-9)
+    controller = KoopmanLqr(model=model, r=1.0, state_weight='state')
+    gain, _ = discrete_lqr_gain(a_d, b_d, np.eye(4), 1.0)
+    x = np.array([0.01, -0.02, 0.015, 0.005])
+    assert controller.compute(x) == pytest.approx(3.0 - gain @ x, abs=1e-9)
+    # ... which deploys like the continuous linearised LQR.
+    states, u = closed_loop(controller, dynamics.PAPER_INITIAL_STATE, 2000)
+    summary = run_figures(np.arange(2001) * dynamics.PAPER_STEP, states, u)
+    assert summary['settle_tau'] is not None and summary['settle_tau'] < 12.0
+
+
+def test_local_linear_model_of_an_exact_lift_is_the_discretised_linearisation():
+    model, a_d, b_d = exact_linear_lifted_model()
+    jacobian, b_x = model.local_linear_model()
+    np.testing.assert_allclose(jacobian, a_d, atol=1e-8)
+    np.testing.assert_allclose(b_x, b_d, atol=1e-12)
+
+
+def test_mpc_with_the_local_terminal_cost_moves_like_the_discrete_lqr():
+    """No active constraint, input cost on the level: the terminal cost-to-go makes the
+    finite-horizon MPC the infinite-horizon LQR (Bellman), here against scipy's DARE."""
+    model, a_d, b_d = exact_linear_lifted_model()
+    mpc = KoopmanMpc(model=model, horizon=10, r=1.0, terminal='local', u_max=1e6,
+                     theta_max=3.2, overshoot_max=10.0)
+    gain, _ = discrete_lqr_gain(a_d, b_d, np.eye(4), 1.0)
+    for x in ([0.01, -0.02, 0.015, 0.005], [-0.05, 0.0, -0.03, 0.02]):
+        assert mpc.compute(np.array(x)) == pytest.approx(3.0 - gain @ x, abs=1e-5)
+    assert mpc.fallbacks == 0
+
+
+def test_koopman_lqr_gain_stabilises_the_lifted_system(tiny_model):
+    controller = KoopmanLqr(model=LiftedModel.load(tiny_model[0]))
+    assert controller.closed_loop_spectral_radius() < 1.0
+
+
+def test_mpc_without_active_constraints_moves_like_the_lqr(tiny_model):
+    """With the terminal cost from the DARE, unconstrained MPC is the LQR (Bellman)."""
+    model = LiftedModel.load(tiny_model[0])
+    mpc = KoopmanMpc(model=model, horizon=10, r=15.0, state_weight='lifted',
+                     terminal='riccati', u_max=1e6, theta_max=3.2, overshoot_max=10.0)
+    lqr = KoopmanLqr(model=model)
+    mpc.drift = np.zeros_like(mpc.drift)   # the LQR assumes z_d is a fixed point
+    for x in ([0.0, 0.0, 0.0, 0.0], [0.002, -0.001, 0.001, 0.0]):
+        u_hat_lqr = lqr.u_hat_ref - float(lqr.gain @ (model.psi_x(np.array(x)) - lqr.z_ref))
+        assert mpc.compute(x) == pytest.approx(model.tension_from_input(np.array(x), u_hat_lqr),
+                                               abs=1e-4)
+    assert mpc.fallbacks == 0
+
+
+def test_mpc_respects_the_tension_bounds(tiny_model):
+    mpc = KoopmanMpc(model=LiftedModel.load(tiny_model[0]), horizon=10, u_max=5.0)
+    rng = np.random.default_rng(1)
+    for x in rng.uniform(dynamics.TABLE1_STATE_LOW, dynamics.TABLE1_STATE_HIGH, (20, 4)):
+        assert -1e-3 <= mpc.compute(x) <= 5.0 + 1e-3

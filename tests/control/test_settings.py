@@ -1,0 +1,45 @@
+"""Each law's settings: declared once, checked once, parsed from the command line."""
+
+import dataclasses
+
+import pytest
+
+from tsr_koopman_ctrl.control import CONTROLLERS, KoopmanMpc, LinearisedLqr, make_controller
+from tsr_koopman_ctrl.control.settings import parse_value
+
+
+def test_every_law_has_described_settings():
+    for name, law in CONTROLLERS.items():
+        assert law.name == name and law.Settings.law == name
+        for field in dataclasses.fields(law.Settings):
+            assert field.metadata['description'], f'{name}.{field.name} has no description'
+
+
+@pytest.mark.parametrize('law, overrides, message', [
+    ('koopman_mpc', {'horizon': 0}, 'koopman_mpc.horizon must be >= 1, got 0'),
+    ('koopman_mpc', {'terminal': 'stage'}, "koopman_mpc.terminal must be one of"),
+    ('linear_lqr', {'q': (1.0, 2.0)}, 'linear_lqr.q needs 4 numbers'),
+    ('linear_lqr', {'r': float('nan')}, 'linear_lqr.r must be finite'),
+    ('linear_lqr', {'bogus': 1}, "linear_lqr has no setting 'bogus'")])
+def test_bad_settings_are_one_line_naming_the_setting(law, overrides, message):
+    with pytest.raises(ValueError, match=message.replace('(', r'\(')) as error:
+        make_controller(law, **overrides)
+    assert '\n' not in str(error.value)
+
+
+def test_settings_reach_the_law_and_the_loop_limits_stay_apart():
+    law = make_controller('linear_lqr', q=[10.0, 1.0, 10.0, 1.0], r=0.1, u_max=4.0)
+    assert law.settings.q == (10.0, 1.0, 10.0, 1.0) and law.u_max == 4.0
+    assert abs(law.gain[2]) > abs(LinearisedLqr().gain[2])    # heavier weight on l - 1
+    mpc = KoopmanMpc(horizon=3, u_max=4.0)
+    assert mpc.horizon == 3 and mpc.input_range[1] == pytest.approx(
+        float(mpc.model.input_map(4.0)))
+
+
+def test_command_line_values_take_the_setting_type():
+    settings = CONTROLLERS['koopman_mpc'].Settings
+    assert parse_value(settings, 'horizon', '8') == 8
+    assert parse_value(settings, 'q', '1,2,3,4') == (1.0, 2.0, 3.0, 4.0)
+    assert parse_value(settings, 'terminal', 'riccati') == 'riccati'
+    with pytest.raises(ValueError, match="koopman_mpc.horizon: cannot read 'five' as int"):
+        parse_value(settings, 'horizon', 'five')

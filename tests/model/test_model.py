@@ -1,0 +1,61 @@
+"""The model file and the lifted model in numpy: inversion, damage, the shipped models."""
+
+import numpy as np
+import pytest
+
+from tsr_koopman_ctrl.learning import dataset as datasets
+from tsr_koopman_ctrl.learning import errors
+from tsr_koopman_ctrl.model import lifted, model_file
+
+
+def test_monotone_input_map_inverts_everywhere(tiny_model):
+    model = lifted.LiftedModel.load(tiny_model[0])
+    for u in (-3.0, 0.0, 0.7, 3.0, 5.0, 11.0):
+        value = float(model.input_map(u))
+        assert model.input_map.inverse(value) == pytest.approx(u, abs=1e-6)
+        round_trip = float(model.input_map(model.input_map.inverse(value)))
+        assert round_trip == pytest.approx(value, abs=1e-11)
+    x = np.array([0.1, -0.2, -0.5, 0.3])
+    u_hat = float(model.psi_u(x, 2.5))
+    assert model.tension_from_input(x, u_hat) == pytest.approx(2.5, abs=1e-6)
+    assert model.psi_ux(np.random.default_rng(0).normal(size=(100, 4)) * 50).min() >= 0.05
+
+
+@pytest.mark.parametrize('damage, message', [
+    ('truncate', 'corrupt or truncated'), ('delete_weights', 'weights.safetensors: missing'),
+    ('bad_json', 'not valid JSON'), ('wrong_shape', 'A has shape'),
+    ('nan', 'A has non-finite'), ('no_dir', 'no such model directory')])
+def test_bad_model_files_give_one_clear_line(tiny_model, tmp_path, damage, message):
+    tensors, config, meta = model_file.load(tiny_model[0])
+    target = tmp_path / 'm'
+    extra = {k: v for k, v in meta.items() if k not in ('format', 'version', 'config')}
+    model_file.save(target, tensors, config, extra)
+    weights = target / model_file.WEIGHTS_FILE
+    if damage == 'truncate':
+        weights.write_bytes(weights.read_bytes()[:500])
+    elif damage == 'delete_weights':
+        weights.unlink()
+    elif damage == 'bad_json':
+        (target / model_file.META_FILE).write_text('{"format": ')
+    elif damage in ('wrong_shape', 'nan'):
+        from safetensors.numpy import save_file
+        arrays = {k: np.array(v, dtype=np.float32) for k, v in tensors.items()}
+        arrays['A'] = arrays['A'][:-1] if damage == 'wrong_shape' else arrays['A'] * np.nan
+        save_file(arrays, str(weights))
+    elif damage == 'no_dir':
+        target = tmp_path / 'nothing'
+    with pytest.raises(model_file.ModelFileError) as error:
+        lifted.LiftedModel.load(target)
+    assert message in str(error.value) and str(target) in str(error.value)
+    assert '\n' not in str(error.value)
+
+
+@pytest.mark.parametrize('name', ['koopman_default', 'koopman_paper'])
+def test_shipped_model_error_on_fresh_data_stays_under_its_record(name):
+    model = lifted.LiftedModel.load(name)
+    recorded = model.metadata['metrics']['test']['summed_mse']
+    fresh, _ = datasets.sample(datasets.SamplingConfig(trajectories=2000, seed=424242))
+    result = errors.multistep_errors(model.predict(fresh.x[:, 0], fresh.u), fresh.x)
+    # 2000 fresh trajectories against the 5000 of the record: allow sampling noise of 25%.
+    assert result['summed_mse'] < 1.25 * recorded
+    assert model.metadata['config']['lift_dim'] == 36

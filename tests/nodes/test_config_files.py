@@ -1,0 +1,68 @@
+"""The shipped example parameter files: derived where they can be, and they start their nodes."""
+
+import os
+import subprocess
+
+import pytest
+import yaml
+
+from tsr_koopman_ctrl.tools.config import example_yaml
+from tsr_koopman_ctrl.tools.launcher import executable
+
+from conftest import ROOT
+
+CONFIG = ROOT / 'ros2_ws' / 'src' / 'tsr_koopman_ctrl' / 'config'
+
+
+def test_controller_config_is_derived_from_the_law_settings():
+    """One declaration: the file equals what the settings classes write (regenerate it with
+    python -m tsr_koopman_ctrl.tools.config)."""
+    assert (CONFIG / 'controller.yaml').read_text() == example_yaml()
+    params = yaml.safe_load(example_yaml())['tsr_controller']['ros__parameters']
+    assert params['koopman_mpc']['horizon'] == 5 and params['linear_lqr']['q'] == [1.0] * 4
+
+
+@pytest.mark.ros
+def test_sim_example_params_run_a_lockstep_simulator(ros, start_node):
+    from tsr_msgs.msg import TsrState
+    from tsr_sim import ros_io, wire
+    params = str(ROOT / 'ros2_ws/src/tsr_sim/config/sim.yaml')
+    start_node('tsr_sim', 'sim_node', 'tsr_sim', extra_args=['--params-file', params])
+    got = []
+    ros.node.create_subscription(TsrState, wire.STATE_TOPIC, got.append, ros_io.LOOP_QOS)
+    ros.spin_until(lambda: got, what='a state from the example configuration')
+    assert abs(got[0].length - 1000.0) < 1e-6 and got[0].step == 0
+
+
+@pytest.mark.ros
+def test_bad_parameters_fail_at_start_with_one_line(domain_id):
+    for args in (['-p', 'mode:=bogus'], ['-p', 'substeps:=0'], ['-p', 'step:=fast'],
+                 ['-p', 'initial_state:=[0.0, 0.0, -1.5, 0.5]']):
+        result = subprocess.run([executable('tsr_sim', 'sim_node'), '--ros-args', *args],
+                                env=dict(os.environ, ROS_DOMAIN_ID=str(domain_id)),
+                                capture_output=True, text=True, timeout=30)
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.startswith('cannot start:') and 'Traceback' not in result.stderr
+
+
+@pytest.mark.ros
+def test_controller_from_any_directory_commands_the_plant_with_the_shipped_model(
+        ros, start_node, tmp_path):
+    """The installed executable started elsewhere (as `ros2 run` users do) finds the shipped
+    model by name through the ament index, with the example parameter file."""
+    from tsr_msgs.msg import SimStatus
+    from tsr_sim import ros_io, wire
+    elsewhere = tmp_path / 'elsewhere'
+    elsewhere.mkdir()
+    start_node('tsr_sim', 'sim_node', 'tsr_sim', {'max_steps': 50, 'progress_every': 0})
+    start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller', cwd=str(elsewhere),
+               extra_args=['--params-file', str(CONFIG / 'controller.yaml')])
+    seen = []
+    ros.node.create_subscription(SimStatus, wire.SIM_STATUS_TOPIC, seen.append,
+                                 ros_io.LATCHED_QOS)
+    ros.spin_until(lambda: seen and seen[-1].commands_accepted >= 50, timeout=30.0,
+                   what='50 koopman_mpc commands accepted by the simulator')
+    last = seen[-1]
+    assert last.rejected_non_finite + last.rejected_negative + last.rejected_over_limit == 0
+    log = (tmp_path / 'tsr_controller.log').read_text()
+    assert 'koopman_mpc controller' in log and 'share/tsr_koopman_ctrl/models' in log

@@ -1,0 +1,129 @@
+"""The simulator node as a separate process, driven over DDS by a test node."""
+
+import math
+
+import numpy as np
+import pytest
+
+from tsr_sim import dynamics, wire
+from tsr_sim.units import Scale
+
+pytestmark = pytest.mark.ros
+
+
+SCALE = Scale()
+SIM_PARAMS = {'mode': 'lockstep', 'substeps': 10, 'max_tension': SCALE.u_to_tension(5.0),
+              'republish_period': 0.2, 'progress_every': 0}
+
+
+def tension_law(x):
+    """A fixed feedback law (dimensionless) that keeps the paper's start inside the domain."""
+    return float(np.clip(3.0 * (1.0 + x[2]) + 2.0 * x[2] - x[3] + 0.5 * x[0], 0.0, 5.0))
+
+
+class SimDriver:
+    """Test-side controller: answers every state with tension_law, records what it sees."""
+
+    def __init__(self, ros, answer=True):
+        from tsr_msgs.msg import SimStatus, TensionCommand, TsrState
+        from tsr_sim import ros_io
+        self.ros, self.answer = ros, answer
+        self.states = {}
+        self.status = None
+        node = ros.node
+        self.cmd_pub = node.create_publisher(TensionCommand, wire.TENSION_TOPIC,
+                                             ros_io.LOOP_QOS)
+        node.create_subscription(TsrState, wire.STATE_TOPIC, self.on_state, ros_io.LOOP_QOS)
+        node.create_subscription(SimStatus, wire.SIM_STATUS_TOPIC,
+                                 lambda m: setattr(self, 'status', m), ros_io.LATCHED_QOS)
+
+    def on_state(self, msg):
+        x = SCALE.state_from_si(wire.state_from_msg(msg))
+        self.states[msg.step] = x
+        if self.answer:
+            self.send(SCALE.u_to_tension(tension_law(x)), msg.step)
+
+    def send(self, tension, step):
+        self.cmd_pub.publish(wire.tension_msg(tension, step,
+                                              self.ros.node.get_clock().now().to_msg()))
+
+    def wait_for_sim(self):
+        self.ros.spin_until(lambda: self.cmd_pub.get_subscription_count() > 0 and self.states,
+                            what='the simulator to appear')
+
+
+def test_lockstep_trajectory_matches_the_dynamics_module(ros, start_node):
+    steps = 150
+    start_node('tsr_sim', 'sim_node', 'tsr_sim', dict(SIM_PARAMS, max_steps=steps))
+    driver = SimDriver(ros)
+    driver.wait_for_sim()
+    driver.send(SCALE.u_to_tension(tension_law(driver.states[0])), 0)  # in case 0 came early
+    ros.spin_until(lambda: steps in driver.states, timeout=60, what=f'{steps} steps')
+
+    x = dynamics.PAPER_INITIAL_STATE.copy()
+    for k in range(steps + 1):
+        np.testing.assert_allclose(driver.states[k], x, rtol=0, atol=1e-9,
+                                   err_msg=f'step {k}')
+        x = dynamics.rk4_step(x, tension_law(x), 0.01, 10)
+    ros.spin_until(lambda: driver.status is not None and driver.status.status == 2,
+                   what='FINISHED status')
+    assert driver.status.step == steps
+    assert driver.status.rejected_stale <= 1   # only the duplicate answer to step 0 above
+
+
+def test_bad_commands_are_rejected_and_counted(ros, start_node):
+    start_node('tsr_sim', 'sim_node', 'tsr_sim', SIM_PARAMS)
+    driver = SimDriver(ros, answer=False)
+    driver.wait_for_sim()
+    limit = SIM_PARAMS['max_tension']
+    for tension, step in [(math.nan, 0), (math.inf, 0), (-1.0, 0), (limit * 1.01, 0),
+                          (1.0, 5)]:
+        driver.send(tension, step)
+
+    def counted():
+        s = driver.status
+        return s is not None and (s.rejected_non_finite, s.rejected_negative,
+                                  s.rejected_over_limit, s.rejected_stale) == (2, 1, 1, 1)
+    ros.spin_until(counted, what='rejections counted')
+    assert driver.status.commands_accepted == 0 and driver.status.step == 0
+    driver.states.clear()
+    driver.send(1.0, 0)                      # a valid command still works afterwards
+    ros.spin_until(lambda: 1 in driver.states, what='step 1')
+
+
+def test_reset_service_restarts_from_the_requested_state(ros, start_node):
+    from tsr_msgs.srv import ResetSim
+    start_node('tsr_sim', 'sim_node', 'tsr_sim', SIM_PARAMS)
+    driver = SimDriver(ros)
+    driver.wait_for_sim()
+    ros.spin_until(lambda: 20 in driver.states, what='20 steps')
+    driver.answer = False
+    ros.spin_for(0.3)
+
+    client = ros.node.create_client(ResetSim, wire.RESET_SERVICE)
+    assert client.wait_for_service(timeout_sec=10.0)
+    target = np.array([0.1, -0.2, -0.5, 0.3])
+    si = SCALE.state_to_si(target)
+    request = ResetSim.Request(theta=si[0], theta_rate=si[1], length=si[2], length_rate=si[3])
+    driver.states.clear()
+    future = client.call_async(request)
+    ros.spin_until(future.done, what='reset response')
+    assert future.result().success, future.result().message
+    ros.spin_until(lambda: 0 in driver.states, what='state after reset')
+    np.testing.assert_allclose(driver.states[0], target, atol=1e-12)
+
+    bad = client.call_async(ResetSim.Request(length=-5.0))
+    ros.spin_until(bad.done, what='second reset response')
+    assert not bad.result().success
+    assert 'outside the model domain' in bad.result().message
+
+
+@pytest.mark.parametrize('rate_hz', [200.0])
+def test_timed_mode_applies_safe_tension_without_commands(ros, start_node, rate_hz):
+    start_node('tsr_sim', 'sim_node', 'tsr_sim',
+               dict(SIM_PARAMS, mode='timed', rate_hz=rate_hz, command_timeout=0.2))
+    driver = SimDriver(ros, answer=False)
+    driver.wait_for_sim()
+    ros.spin_until(lambda: driver.status is not None and driver.status.command_timeouts > 0,
+                   what='a command timeout')
+    ros.spin_until(lambda: max(driver.states) > 50, what='time to advance without commands')

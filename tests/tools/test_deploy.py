@@ -1,0 +1,92 @@
+"""The main job over DDS: simulator, controller and recorder as three processes."""
+
+import json
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import get_typestore, Stores
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.bag import read_loop
+from tsr_koopman_ctrl.control import closed_loop, KoopmanMpc, LinearisedLqr
+from tsr_koopman_ctrl.evaluation import settle_index
+from tsr_koopman_ctrl.tools import deploy
+
+pytestmark = pytest.mark.ros
+
+
+def deploy_args(tmp_path, domain_id, *extra):
+    return ['--out', str(tmp_path / 'out'), '--bags', str(tmp_path / 'bags'),
+            '--domain', str(domain_id), *extra]
+
+
+def test_deployment_over_dds_matches_the_ros_free_loop_and_leaves_a_bag(tmp_path, domain_id):
+    steps = 400
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--controller', 'linear_lqr',
+                                   '--steps', str(steps))) == 0
+    (bag_path,) = (tmp_path / 'bags').iterdir()
+    loop = read_loop(str(bag_path))
+    assert not loop.report.recovered
+    assert loop.step.tolist() == list(range(steps + 1))
+    # Lockstep makes the DDS loop step-identical to the ROS-free one.
+    want_x, want_u = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, steps)
+    np.testing.assert_allclose(loop.x, want_x, atol=1e-9)
+    np.testing.assert_allclose(loop.u[:steps], want_u, atol=1e-9)
+    # The controller's status of every answered state is in the bag, with its compute time.
+    assert loop.compute_time.size >= steps and np.all(loop.compute_time > 0.0)
+    assert loop.controller_status.controller == 'linear_lqr'
+    assert loop.sim_status.status == 2 and loop.sim_status.step == steps   # FINISHED
+
+    with AnyReader([bag_path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        first = next(reader.deserialize(raw, c.msgtype)
+                     for c, _, raw in reader.messages() if c.topic == '/tsr/state')
+    assert counts['/tsr/state'] >= steps + 1 and counts['/tsr/tension_cmd'] >= steps
+    assert counts['/clock'] >= steps and counts['/tsr/controller_status'] >= steps
+    assert abs(first.length - 1000.0) < 1e-9   # SI on the wire: l = 0.01 of 100 km
+    (run_dir,) = (tmp_path / 'out').iterdir()
+    assert (run_dir / 'deployment.png').stat().st_size > 10_000
+    (row,) = json.loads((run_dir / 'summary.json').read_text())
+    assert row['compute_median_us'] == pytest.approx(np.median(loop.compute_time) * 1e6)
+
+
+def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(tmp_path, domain_id):
+    """The main job as the README runs it (2000 steps, koopman_mpc, the shipped model)."""
+    steps = 2000
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--steps', str(steps))) == 0
+    (bag_path,) = (tmp_path / 'bags').iterdir()
+    loop = read_loop(str(bag_path))
+    want_x, want_u = closed_loop(KoopmanMpc(), dynamics.PAPER_INITIAL_STATE, steps)
+    np.testing.assert_allclose(loop.x, want_x, atol=1e-7)
+    np.testing.assert_allclose(loop.u[:steps], want_u, atol=1e-7)
+    assert settle_index(loop.x) is not None
+    assert loop.controller_status.solver_fallbacks == 0
+    (run_dir,) = (tmp_path / 'out').iterdir()
+    (row,) = json.loads((run_dir / 'summary.json').read_text())
+    assert row['controller'] == 'koopman_mpc' and row['settle_tau'] < 10.0
+    assert row['frontier_ratio'] == pytest.approx(row['settle_tau'] / row['frontier_tau'])
+
+
+def test_loop_under_a_namespace_reads_back_from_the_bag(tmp_path, domain_id):
+    steps = 100
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--controller', 'linear_lqr',
+                                   '--steps', str(steps), '--namespace', '/tsr1')) == 0
+    (bag_path,) = (tmp_path / 'bags').iterdir()
+    loop = read_loop(str(bag_path))
+    assert loop.namespace == '/tsr1'
+    assert loop.step.tolist() == list(range(steps + 1))
+    assert read_loop(str(bag_path), namespace='/tsr1').step.size == steps + 1
+    with pytest.raises(ValueError, match='bag has no /other/tsr/state'):
+        read_loop(str(bag_path), namespace='/other')
+    with AnyReader([bag_path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        topics = {c.topic for c in reader.connections}
+    assert {'/tsr1/tsr/state', '/tsr1/tsr/tension_cmd', '/tsr1/tsr/controller_status',
+            '/clock'} <= topics
+
+
+def test_a_start_outside_the_domain_is_one_clear_line(tmp_path, domain_id, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        deploy.main(deploy_args(tmp_path, domain_id, '--x0', '0', '0', '-1.5', '0.5'))
+    assert exit_info.value.code == 2
+    assert 'outside the model domain' in capsys.readouterr().err
