@@ -56,6 +56,7 @@ def test_round_trip_with_own_reader_and_rosbags(tmp_path):
     got = [m for m, _ in zip(reader.decoded(), range(10**6))]
     assert [d.data for _, d in got] == [f'msg {i}' for i in range(500)]
     assert reader.report.messages == 500 and not reader.report.recovered
+    assert reader.report.summary() == 'b_0.mcap: complete, 500 messages'
 
     meta = yaml.safe_load(open(path / 'metadata.yaml'))['rosbag2_bagfile_information']
     assert meta['version'] == 9 and meta['message_count'] == 500
@@ -90,7 +91,8 @@ def test_truncated_file_is_recovered_up_to_the_last_complete_chunk(tmp_path):
     mcap_file.write_bytes(data[:len(data) // 2])     # what a SIGKILL leaves behind
     reader = bag.BagReader(str(path))
     texts = [d.data for _, d in reader.decoded()]
-    assert reader.report.recovered and 'RECOVERED' in reader.report.summary()
+    assert reader.report.recovered and reader.report.truncated == ['b_0.mcap']
+    assert reader.report.summary() == f'b_0.mcap: truncated: {len(texts)} messages recovered'
     assert 500 < len(texts) < 2000
     assert texts == [f'msg {i}' for i in range(len(texts))]   # a prefix, in order
 

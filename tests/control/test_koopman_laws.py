@@ -83,18 +83,26 @@ def test_koopman_lqr_gain_stabilises_the_lifted_system(tiny_model):
     assert controller.closed_loop_spectral_radius() < 1.0
 
 
+class DriftFreeMpc(KoopmanMpc):
+    """The LQR assumes z_d is a fixed point of the model; the tiny model is not anchored."""
+
+    def reference_drift(self):
+        return np.zeros_like(self.z_ref)
+
+
 def test_mpc_without_active_constraints_moves_like_the_lqr(tiny_model):
     """With the terminal cost from the DARE, unconstrained MPC is the LQR (Bellman)."""
     model = LiftedModel.load(tiny_model[0])
-    mpc = KoopmanMpc(model=model, horizon=10, r=15.0, state_weight='lifted',
-                     terminal='riccati', u_max=1e6, theta_max=3.2, overshoot_max=10.0)
     lqr = KoopmanLqr(model=model)
-    mpc.drift = np.zeros_like(mpc.drift)   # the LQR assumes z_d is a fixed point
-    for x in ([0.0, 0.0, 0.0, 0.0], [0.002, -0.001, 0.001, 0.0]):
-        u_hat_lqr = lqr.u_hat_ref - float(lqr.gain @ (model.psi_x(np.array(x)) - lqr.z_ref))
-        assert mpc.compute(x) == pytest.approx(model.tension_from_input(np.array(x), u_hat_lqr),
-                                               abs=1e-4)
-    assert mpc.fallbacks == 0
+    for solver in ('daqp', 'osqp'):
+        mpc = DriftFreeMpc(model=model, horizon=10, r=15.0, state_weight='lifted',
+                           terminal='riccati', u_max=1e6, theta_max=3.2, overshoot_max=10.0,
+                           qp_solver=solver)
+        for x in ([0.0, 0.0, 0.0, 0.0], [0.002, -0.001, 0.001, 0.0]):
+            u_hat_lqr = lqr.u_hat_ref - float(lqr.gain @ (model.psi_x(np.array(x)) - lqr.z_ref))
+            assert mpc.compute(x) == pytest.approx(
+                model.tension_from_input(np.array(x), u_hat_lqr), abs=1e-4)
+        assert mpc.fallbacks == 0
 
 
 def test_mpc_respects_the_tension_bounds(tiny_model):

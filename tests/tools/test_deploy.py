@@ -90,3 +90,11 @@ def test_a_start_outside_the_domain_is_one_clear_line(tmp_path, domain_id, capsy
         deploy.main(deploy_args(tmp_path, domain_id, '--x0', '0', '0', '-1.5', '0.5'))
     assert exit_info.value.code == 2
     assert 'outside the model domain' in capsys.readouterr().err
+
+
+def test_a_node_failing_at_start_is_reported_with_its_log(tmp_path, domain_id, capsys):
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--model', str(tmp_path / 'nothing'),
+                                   '--steps', '50')) == 1
+    err = capsys.readouterr().err
+    assert 'tsr_controller exited early' in err and 'exited with 2' in err
+    assert 'nothing: no such model directory' in err     # the last lines of its log

@@ -10,7 +10,7 @@ from tsr_sim.units import Scale
 
 def test_paper_scale_in_si():
     scale = Scale(mass=20.0)
-    # One step h = 0.01 tau is 8.47 s of orbit time (../shared/TSR_PHYSICS.md).
+    # One step h = 0.01 tau is 8.47 s of orbit time (docs/physics.md).
     assert scale.tau_to_seconds(0.01) == pytest.approx(8.4717, abs=1e-3)
     # u = 3 holds the equilibrium: 3 m Omega^2 L.
     assert scale.u_to_tension(3.0) == pytest.approx(3 * 20.0 * 1.1804e-3 ** 2 * 1e5)

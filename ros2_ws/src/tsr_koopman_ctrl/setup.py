@@ -43,6 +43,7 @@ setup(
             'train = tsr_koopman_ctrl.tools.train:main',
             'evaluate = tsr_koopman_ctrl.tools.evaluate:main',
             'mpc_sweep = tsr_koopman_ctrl.tools.mpc_sweep:main',
+            'bag = tsr_koopman_ctrl.tools.bag:main',
         ],
     },
 )

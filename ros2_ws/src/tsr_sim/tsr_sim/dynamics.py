@@ -16,6 +16,8 @@ The paper prints ``beta tan(beta)`` in the theta equation of the 3-D model; the 
 consistent term (Williams 2008) is ``beta' tan(beta)``, which is what is implemented.
 """
 
+import math
+
 import numpy as np
 
 THETA, THETA_RATE, LENGTH_OFFSET, LENGTH_RATE, BETA, BETA_RATE = range(6)
@@ -83,6 +85,51 @@ def rk4_step(x, u, h=PAPER_STEP, substeps=1):
         k4 = derivative(x + dt * k3, u)
         x = x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
     return x
+
+
+def planar_step(x, u, h=PAPER_STEP, substeps=1):
+    """`rk4_step` for one planar state, on Python floats: what a simulator or a closed loop
+    advances every sample. Numpy's per-call overhead dominates for a 4-vector (~0.9 ms against
+    ~60 us for 10 substeps); the arithmetic is the same and agrees to rounding (a test checks).
+    Returns a numpy array; non-finite values propagate (check `in_domain`)."""
+    theta, rate, offset, speed = (float(v) for v in x)
+    u = float(u)
+    dt = h / substeps
+
+    def derivative_at(theta, rate, offset, speed):
+        length, w = offset + 1.0, rate + 1.0
+        sin_t, cos_t = math.sin(theta), math.cos(theta)
+        return (rate, -2.0 * (speed / length) * w - 3.0 * sin_t * cos_t,
+                speed, length * (w * w + 3.0 * cos_t * cos_t - 1.0) - u)
+
+    for _ in range(substeps):
+        k1 = derivative_at(theta, rate, offset, speed)
+        k2 = derivative_at(theta + 0.5 * dt * k1[0], rate + 0.5 * dt * k1[1],
+                           offset + 0.5 * dt * k1[2], speed + 0.5 * dt * k1[3])
+        k3 = derivative_at(theta + 0.5 * dt * k2[0], rate + 0.5 * dt * k2[1],
+                           offset + 0.5 * dt * k2[2], speed + 0.5 * dt * k2[3])
+        k4 = derivative_at(theta + dt * k3[0], rate + dt * k3[1], offset + dt * k3[2],
+                           speed + dt * k3[3])
+        sixth = dt / 6.0
+        theta += sixth * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0])
+        rate += sixth * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])
+        offset += sixth * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2])
+        speed += sixth * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3])
+    return np.array([theta, rate, offset, speed])
+
+
+def step(x, u, h=PAPER_STEP, substeps=1):
+    """Advance one state by one sample period: `planar_step` for a planar state, `rk4_step`
+    otherwise. The simulator and the ROS-free closed loop both step with this."""
+    x = np.asarray(x, dtype=float)
+    if x.shape == (PLANAR_DIM,):
+        with np.errstate(all='ignore'):
+            try:
+                return planar_step(x, u, h, substeps)
+            except (OverflowError, ZeroDivisionError, ValueError):
+                return np.full(PLANAR_DIM, np.nan)   # left the domain mid-step
+    with np.errstate(all='ignore'):
+        return rk4_step(x, u, h, substeps)
 
 
 def rollout(x0, u_sequence, h=PAPER_STEP, substeps=1):

@@ -121,8 +121,8 @@ class Plant:
         if self.status is not Status.RUNNING:
             return
         u = self.config.scale.tension_to_u(tension)
+        nxt = dynamics.step(self.state, u, self.config.step, self.config.substeps)
         with np.errstate(all='ignore'):
-            nxt = dynamics.rk4_step(self.state, u, self.config.step, self.config.substeps)
             nxt = nxt + self._noise(self.config.process_noise_std)
         if not dynamics.in_domain(nxt):
             self.status = Status.HALTED_OUT_OF_DOMAIN

@@ -4,11 +4,12 @@ Kept apart from the ROS-free core (dynamics, units, plant, wire) so that the cor
 rclpy. Topic names and message <-> array conversion are in `tsr_sim.wire`.
 """
 
+import signal
 import sys
+import time
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
-from rclpy._rclpy_pybind11 import RCLError
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -24,6 +25,10 @@ LOOP_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 LOOP_PUBLISHER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                                 history=HistoryPolicy.KEEP_LAST,
                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: Commands into the simulator: reliable and keep-all, so a burst (valid or not) is received and
+#: counted in full rather than cut to the last few.
+COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         history=HistoryPolicy.KEEP_ALL, durability=DurabilityPolicy.VOLATILE)
 #: Status: a late joiner gets the last one.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST,
@@ -52,27 +57,54 @@ def declare_scale(node):
         mass=declare(node, 'mass', DEFAULT_MASS, 'robot mass m [kg]', 1e-6, 1e9))
 
 
-def run_node(make_node, on_exit=None, args=None):
-    """Jazzy node life cycle: init, spin until SIGINT/SIGTERM (or SystemExit from a callback),
-    then `on_exit(node)` and clean-up. A bad parameter (out of range, wrong type, invalid
-    value) or model while constructing is one clear line on stderr and exit code 2."""
-    rclpy.init(args=args)
+def spin_until_quiet(executor, progress, quiet=0.3, limit=10.0):
+    """Spin until `progress()` (a count of work done) has not changed for `quiet` seconds, or
+    for at most `limit` seconds: takes what is still queued before a node closes."""
+    last, last_change = progress(), time.monotonic()
+    deadline = last_change + limit
+    while time.monotonic() - last_change < quiet and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.02)
+        if progress() != last:
+            last, last_change = progress(), time.monotonic()
+
+
+def run_node(make_node, on_exit=None, args=None, drain=None):
+    """The node life cycle every node of the project shares (Jazzy).
+
+    Spins on rclpy's EventsExecutor (measured: a ping-pong ~1.6x and a raw-subscription writer
+    ~10x faster than the SingleThreadedExecutor here). rclpy's own signal handlers are off:
+    SIGINT and SIGTERM only set a flag, so the context stays up after a signal and
+    `drain(node, executor)` can still take what the DDS reader has acknowledged but not yet
+    handed over (the recorder's bag then holds every message acknowledged before the stop).
+    Then `on_exit(node)` and clean-up; exit code 0. A callback raising SystemExit ends the
+    run the same way. A bad parameter (out of range, wrong type, invalid value) or model while
+    constructing is one clear line on stderr and exit code 2.
+    """
+    from rclpy.experimental import EventsExecutor
+    from rclpy.signals import SignalHandlerOptions
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = []
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda number, frame: stop.append(number))
     try:
         node = make_node()
     except (ValueError, ParameterException) as err:
         print(f'cannot start: {err}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return 2
+    executor = EventsExecutor()
+    executor.add_node(node)
     try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException, SystemExit):
+        while not stop and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+        if drain is not None and rclpy.ok():
+            drain(node, executor)
+    except (SystemExit, ExternalShutdownException):
         pass
-    except RCLError:
-        if rclpy.ok():     # a callback racing the signal's shutdown is a shutdown; else a bug
-            raise
     finally:
         if on_exit is not None:
             on_exit(node)
+        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

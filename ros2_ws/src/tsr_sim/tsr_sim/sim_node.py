@@ -23,8 +23,8 @@ from tsr_msgs.srv import ResetSim
 
 from tsr_sim import dynamics
 from tsr_sim.plant import Plant, PlantConfig, Status
-from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_PUBLISHER_QOS, LOOP_QOS,
-                            run_node)
+from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, LATCHED_QOS,
+                            LOOP_PUBLISHER_QOS, run_node)
 from tsr_sim.wire import (CLOCK_TOPIC, RESET_SERVICE, SIM_STATUS_TOPIC, STATE_TOPIC,
                           state_to_msg, TENSION_TOPIC)
 
@@ -60,7 +60,7 @@ class SimNode(Node):
         self.state_pub = self.create_publisher(TsrState, STATE_TOPIC, LOOP_PUBLISHER_QOS)
         self.status_pub = self.create_publisher(SimStatus, SIM_STATUS_TOPIC, LATCHED_QOS)
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
-        self.create_subscription(TensionCommand, TENSION_TOPIC, self.on_command, LOOP_QOS)
+        self.create_subscription(TensionCommand, TENSION_TOPIC, self.on_command, COMMAND_QOS)
         self.create_service(ResetSim, RESET_SERVICE, self.on_reset)
 
         rate_hz = declare(self, 'rate_hz', 100.0, 'timed: simulation steps per wall second',
@@ -68,6 +68,7 @@ class SimNode(Node):
         self.held_tension = self.safe_tension
         self.command_timeouts = 0
         self.last_command_wall = time.monotonic()
+        self.next_idle_warning = 0.0
         if self.mode == 'lockstep':
             self.create_timer(self.republish_period, self.on_idle_check)
         else:
@@ -122,6 +123,7 @@ class SimNode(Node):
             self.publish_status()
             return
         self.last_command_wall = time.monotonic()
+        self.next_idle_warning = 0.0
         if self.mode == 'lockstep':
             self.step(msg.tension)
         else:
@@ -139,14 +141,16 @@ class SimNode(Node):
         self.step(self.held_tension)
 
     def on_idle_check(self):
-        """Lockstep side of a command timeout: warn and publish the state again."""
-        if self.plant.status is not Status.RUNNING or \
-                time.monotonic() - self.last_command_wall < self.republish_period:
+        """Lockstep side of a command timeout: warn (at once, then every 10 s) and publish the
+        state again."""
+        idle = time.monotonic() - self.last_command_wall
+        if self.plant.status is not Status.RUNNING or idle < self.republish_period:
             return
-        if self.loop_wired():
+        if self.loop_wired() and time.monotonic() >= self.next_idle_warning:
             self.get_logger().warning(
-                f'lockstep: waiting for a tension command for step {self.plant.step_index}',
-                throttle_duration_sec=10.0)
+                f'lockstep: no tension command for step {self.plant.step_index} for '
+                f'{idle:.1f} s (is the controller running?)')
+            self.next_idle_warning = time.monotonic() + 10.0
         self.publish_state()
 
     def loop_wired(self):

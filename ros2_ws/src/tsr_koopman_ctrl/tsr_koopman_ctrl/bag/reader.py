@@ -1,15 +1,42 @@
 """The bag reader: a bag directory (or one .mcap file), recovering files a crash left open.
 
-A file ends with a summary only when it is closed; after a crash the reader streams the file
-record by record and keeps every message of every complete chunk, and says so in its report.
+A closed file ends with its summary and footer. A file its writer could not close (SIGKILL)
+ends anywhere: the reader walks it record by record and keeps every message of every complete
+chunk (its CRC checked) and, from a chunk cut short, the messages of its complete zstd blocks
+(a truncated file holds exactly the bytes written, so the prefix of the compressed frame decodes
+to a prefix of the chunk, in steps of 128 KiB of messages; no CRC covers that part). Each file
+gets a state, and `ReadReport.summary()` one line per file:
+
+    complete            summary and footer present
+    truncated           ends without summary: N messages recovered
+    empty               0 bytes, or an MCAP file without messages
+    not an MCAP file    bad magic
+    corrupt             a record inside the file does not decode: the messages before it are kept
+
+`BagReader` refuses (ValueError, one line naming the files) a bag with no readable message.
 """
 
 from dataclasses import dataclass, field
+import io
 import os
 import re
+import struct
+import zlib
 
-from mcap.records import Channel, DataEnd, Footer, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Message, Schema
+from mcap.stream_reader import get_chunk_data_stream
+import zstandard
+
+MAGIC = b'\x89MCAP0\r\n'
+COMPLETE = 'complete'
+TRUNCATED = 'truncated'
+EMPTY = 'empty'
+NOT_MCAP = 'not an MCAP file'
+CORRUPT = 'corrupt'
+_RECORD_HEAD = struct.Struct('<BQ')          # opcode, length
+_MESSAGE_HEAD = struct.Struct('<HIQQ')       # channel id, sequence, log time, publish time
 
 
 @dataclass
@@ -23,9 +50,26 @@ class BagMessage:
 @dataclass
 class FileReport:
     path: str
-    messages: int = 0
-    complete: bool = False         # the file ends with its summary and footer
-    error: str = ''                # why reading stopped early, if it did
+    state: str = ''
+    messages: int = 0              # messages read (recovered, for an incomplete file)
+    salvaged: int = 0              # of which from a chunk cut short
+    detail: str = ''               # why it is empty or corrupt
+
+    @property
+    def complete(self):
+        """The file ends with its summary and footer."""
+        return self.state == COMPLETE
+
+    def line(self):
+        if self.state == COMPLETE:
+            return f'{self.path}: complete, {self.messages} messages'
+        if self.state == TRUNCATED:
+            part = f' ({self.salvaged} from a partly written chunk)' if self.salvaged else ''
+            return f'{self.path}: truncated: {self.messages} messages recovered{part}'
+        if self.state == CORRUPT:
+            return (f'{self.path}: corrupt ({self.detail}): {self.messages} messages recovered '
+                    'before it')
+        return f'{self.path}: {self.state}' + (f' ({self.detail})' if self.detail else '')
 
 
 @dataclass
@@ -37,38 +81,56 @@ class ReadReport:
         return sum(f.messages for f in self.files)
 
     @property
+    def truncated(self):
+        """Names of the files read up to where a crash cut them."""
+        return [f.path for f in self.files if f.state == TRUNCATED]
+
+    @property
     def recovered(self):
-        """True if any file was incomplete (a crash) and was read up to its last good chunk."""
-        return any(not f.complete for f in self.files)
+        """True if messages were recovered from a file left without summary (a crash) or one
+        damaged inside."""
+        return any(f.state in (TRUNCATED, CORRUPT) and f.messages for f in self.files)
 
     def summary(self):
-        lines = [f'{self.messages} messages in {len(self.files)} file(s)']
-        for f in self.files:
-            state = 'complete' if f.complete else f'RECOVERED (incomplete: {f.error})'
-            lines.append(f'  {f.path}: {f.messages} messages, {state}')
-        return '\n'.join(lines)
+        """One line per file: its state and its messages."""
+        return '\n'.join(f.line() for f in self.files)
 
 
 class BagReader:
     """Read a bag directory (or one .mcap file), recovering files a crash left without summary.
 
-    Iterate `messages()`; `report` tells what was read and what was recovered.
+    Iterate `messages()` or `decoded()`; `report` then tells what was read, file by file.
+    Raises ValueError when no file of the bag holds a readable message.
     """
 
     def __init__(self, path):
         if not os.path.exists(path):
             raise FileNotFoundError(f'no bag at {path}')
         self.path = path
-        self.files = _bag_files(path)
+        self.files = bag_files(path)
         if not self.files:
             raise FileNotFoundError(f'no .mcap files in {path}')
         self.report = ReadReport()
         self.schemas = {}              # type name -> Schema record
+        self._check_readable()
 
     def messages(self, topics=None):
         self.report = ReadReport()
         for path in self.files:
-            yield from self._read_file(path, topics)
+            report = FileReport(path=os.path.basename(path))
+            self.report.files.append(report)
+            schemas, channels = {}, {}
+            for record in scan_file(path, report):
+                if isinstance(record, Message):
+                    topic, type_name = channels[record.channel_id]
+                    if topics is None or topic in topics:
+                        yield BagMessage(topic, type_name, record.log_time, record.data)
+                elif isinstance(record, Schema):
+                    schemas[record.id] = record
+                    self.schemas[record.name] = record
+                elif isinstance(record, Channel):
+                    schema = schemas.get(record.schema_id)
+                    channels[record.id] = (record.topic, schema.name if schema else '')
 
     def decoded(self, topics=None):
         """Yield (BagMessage, decoded message) using the schema embedded in the bag."""
@@ -79,36 +141,155 @@ class BagReader:
                 decoders[msg.type] = factory.decoder_for('cdr', self.schemas[msg.type])
             yield msg, decoders[msg.type](msg.data)
 
-    def _read_file(self, path, topics):
-        report = FileReport(path=os.path.basename(path))
-        self.report.files.append(report)
-        schemas, channels = {}, {}
-        with open(path, 'rb') as stream:
+    def _check_readable(self):
+        """Read each file up to its first message; fail early if none has one."""
+        probed = []
+        for path in self.files:
+            report = FileReport(path=os.path.basename(path))
+            records = scan_file(path, report)
             try:
-                for record in StreamReader(stream, validate_crcs=True).records:
-                    if isinstance(record, Schema):
-                        schemas[record.id] = record
-                        self.schemas[record.name] = record
-                    elif isinstance(record, Channel):
-                        channels[record.id] = record
-                    elif isinstance(record, Message):
-                        channel = channels[record.channel_id]
-                        report.messages += 1
-                        if topics is None or channel.topic in topics:
-                            yield BagMessage(channel.topic, schemas[channel.schema_id].name,
-                                             record.log_time, record.data)
-                    elif isinstance(record, (DataEnd, Footer)):
-                        report.complete = True
-            except Exception as err:  # a crashed file can end anywhere, in any record
-                report.error = f'{type(err).__name__}: {err}'
-            if not report.complete and not report.error:
-                report.error = 'file ends without summary (writer did not close it)'
+                if any(isinstance(r, Message) for r in records):
+                    return
+            finally:
+                records.close()
+            probed.append(report.line())
+        raise ValueError(f'no readable messages in {self.path}: {"; ".join(probed)}')
 
 
-def _bag_files(path):
+def bag_files(path):
+    """The .mcap files of a bag directory in split order (or the one file given)."""
     if os.path.isfile(path):
         return [path]
     names = [n for n in os.listdir(path) if n.endswith('.mcap')]
     index = re.compile(r'_(\d+)\.mcap$')
     names.sort(key=lambda n: (int(index.search(n).group(1)) if index.search(n) else -1, n))
     return [os.path.join(path, n) for n in names]
+
+
+def scan_file(path, report):
+    """Yield the Schema, Channel and Message records of one MCAP file in file order, and set
+    `report` (state, messages). Bad content ends the scan and is reported, never raised."""
+    size = os.path.getsize(path)
+    with open(path, 'rb') as stream:
+        head = stream.read(len(MAGIC))
+        if not head or (len(head) < len(MAGIC) and MAGIC.startswith(head)):
+            report.state, report.detail = EMPTY, f'{size} bytes'
+            return
+        if head != MAGIC:
+            report.state = NOT_MCAP
+            return
+        yield from _scan_records(stream, size, report)
+    if report.messages == 0 and report.state in (COMPLETE, TRUNCATED):
+        # Never 'recovered' with nothing: a file killed before its first chunk is just empty.
+        report.detail = 'no messages' if report.state == COMPLETE else (
+            f'no complete chunk in {size} bytes: the writer stopped before its first flush')
+        report.state = EMPTY
+
+
+def _scan_records(stream, size, report):
+    offset, in_data = len(MAGIC), True
+    while True:
+        head = stream.read(_RECORD_HEAD.size)
+        if len(head) < _RECORD_HEAD.size:
+            report.state = TRUNCATED
+            return
+        opcode, length = _RECORD_HEAD.unpack(head)
+        start = offset + _RECORD_HEAD.size
+        if length > size - start:      # the record runs past the end: a crash cut it
+            if opcode == Opcode.CHUNK and in_data:
+                records = _salvage_chunk(stream.read())
+                report.salvaged = sum(isinstance(r, Message) for r in records)
+                yield from _counted(records, report)
+            report.state = TRUNCATED
+            return
+        body = stream.read(length)
+        try:
+            if opcode == Opcode.CHUNK and in_data:
+                records = _chunk_records(body)
+            elif opcode in _DATA_RECORDS and in_data:
+                records = [_record(opcode, body)]
+            elif opcode == Opcode.DATA_END:
+                in_data, records = False, []
+            elif opcode == Opcode.FOOTER:
+                complete = stream.read(len(MAGIC)) == MAGIC
+                report.state = COMPLETE if complete else TRUNCATED
+                return
+            else:
+                records = []           # indexes, statistics, metadata, attachments
+        except Exception as err:       # any decoding failure means damage here
+            report.state = CORRUPT
+            report.detail = f'{Opcode(opcode).name.lower()} record at byte {offset}: {err}'
+            return
+        yield from _counted(records, report)
+        offset = start + length
+
+
+def _counted(records, report):
+    for record in records:
+        if isinstance(record, Message):
+            report.messages += 1
+        yield record
+
+
+_DATA_RECORDS = (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE)
+
+
+def _record(opcode, body):
+    if opcode == Opcode.MESSAGE:
+        channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(body)
+        return Message(channel_id=channel_id, sequence=sequence, log_time=log_time,
+                       publish_time=publish_time, data=body[_MESSAGE_HEAD.size:])
+    stream = ReadDataStream(io.BytesIO(body))
+    return Schema.read(stream) if opcode == Opcode.SCHEMA else Channel.read(stream)
+
+
+def _records_in(data, partial=False):
+    """Schema, Channel and Message records packed in chunk data; `partial`: data cut short,
+    stop at the first incomplete record."""
+    records, pos = [], 0
+    while pos < len(data):
+        if pos + _RECORD_HEAD.size > len(data):
+            if partial:
+                break
+            raise ValueError('chunk data ends inside a record')
+        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+        start = pos + _RECORD_HEAD.size
+        if start + length > len(data):
+            if partial:
+                break
+            raise ValueError('chunk data ends inside a record')
+        if opcode in _DATA_RECORDS:
+            records.append(_record(opcode, data[start:start + length]))
+        pos = start + length
+    return records
+
+
+def _chunk_records(body):
+    chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
+    if chunk.compression == 'zstd':
+        data = zstandard.decompress(chunk.data, chunk.uncompressed_size)
+    elif chunk.compression == '':
+        data = chunk.data
+    else:                              # lz4 (other writers), if installed; or mcap's error
+        stream, length = get_chunk_data_stream(chunk)
+        data = stream.read(length)
+    if len(data) != chunk.uncompressed_size:
+        raise ValueError(f'chunk holds {len(data)} bytes, not {chunk.uncompressed_size}')
+    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise ValueError('chunk CRC mismatch')
+    return _records_in(data)
+
+
+def _salvage_chunk(body):
+    """The complete records at the start of a chunk cut short ([] if none decode)."""
+    try:
+        compression_length, = struct.unpack_from('<I', body, 28)
+        compression = body[32:32 + compression_length].decode()
+        data = body[32 + compression_length + 8:]
+        if compression == 'zstd':
+            data = zstandard.ZstdDecompressor().decompressobj().decompress(data)
+        elif compression != '':
+            return []
+        return _records_in(data, partial=True)
+    except Exception:                  # a cut can fall anywhere: then nothing to keep
+        return []

@@ -10,6 +10,20 @@ it)::
                                  record; zstd-compressed chunks
 
 Messages are stored as the CDR bytes received, never re-serialised.
+
+Crash safety. Messages wait in memory until their chunk is written, so the writer bounds that
+wait in bytes and in time: a chunk is written when it reaches `chunk_size` bytes, and the chunk
+in progress is closed and the file flushed to the OS once its oldest message is `flush_period`
+seconds old (checked in `write()` and in `flush_if_due()`, which a recorder calls from a timer
+so that an idle stream is flushed too). After a SIGKILL the OS still holds every byte flushed, so
+at most the last `flush_period` of messages (and at most one chunk) is lost; `BagReader` reads
+the rest and `python -m tsr_koopman_ctrl.tools.bag recover` makes a complete bag of it. There is
+no fsync: a power loss can lose what the OS had not written to the disk yet.
+
+metadata.yaml is written when the first file opens and rewritten (atomically) at every time
+flush, split, new topic and at close, so a killed bag always lists its files and topics. Its
+message counts are those of the last rewrite: after a kill they can lag what the files hold
+(chunks written by size since then); the files, as read, are the truth.
 """
 
 from dataclasses import dataclass
@@ -24,26 +38,127 @@ from tsr_koopman_ctrl.bag.definitions import TopicInfo
 METADATA_FILE = 'metadata.yaml'
 METADATA_VERSION = 9
 ROS_DISTRO = 'jazzy'
+LIBRARY = 'tsr_koopman_ctrl'
 
 
 @dataclass
-class _FileStats:
-    path: str
+class FileStats:
+    """What metadata.yaml says about one file of a bag."""
+
+    path: str                      # relative to the bag directory
     start_ns: int = 0
     end_ns: int = 0
     count: int = 0
+
+    def add(self, log_time_ns):
+        self.start_ns = log_time_ns if self.count == 0 else min(self.start_ns, log_time_ns)
+        self.end_ns = log_time_ns if self.count == 0 else max(self.end_ns, log_time_ns)
+        self.count += 1
+
+
+@dataclass
+class TopicStats:
+    """What metadata.yaml says about one topic (qos and hash as the channel metadata has them)."""
+
+    name: str
+    type: str
+    qos_yaml: str = ''
+    type_hash: str = ''
+    count: int = 0
+
+
+class _CountingFile:
+    """A file opened for writing that counts what was written: `tell()` without a system
+    call, and `written` shows when the MCAP writer has written a chunk."""
+
+    def __init__(self, path):
+        self._file = open(path, 'wb')
+        self.written = 0
+
+    def write(self, data):
+        self.written += len(data)
+        return self._file.write(data)
+
+    def tell(self):
+        return self.written
+
+    def flush(self):
+        self._file.flush()
+
+    def close(self):
+        self._file.close()
+
+
+def open_mcap(path, chunk_size=1 << 20):
+    """A new MCAP file with the rosbag2 profile; returns (stream, writer)."""
+    stream = _CountingFile(path)
+    writer = Writer(stream, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+    writer.start(profile='ros2', library=LIBRARY)
+    return stream, writer
+
+
+def finish_mcap(stream, writer, metadata):
+    """Close an MCAP file: the 'rosbag2' metadata record rosbag2 writes, summary, footer."""
+    writer.add_metadata('rosbag2', {
+        'ROS_DISTRO': ROS_DISTRO,
+        'serialized_metadata': yaml.safe_dump(metadata, sort_keys=False)})
+    writer.finish()
+    stream.close()
+
+
+def bag_metadata(topics, files):
+    """rosbag2's metadata.yaml content for `topics` (TopicStats) and `files` (FileStats)."""
+    def stamp(ns):
+        return {'nanoseconds_since_epoch': int(ns)}
+    used = [f for f in files if f.count]
+    start = min((f.start_ns for f in used), default=0)
+    end = max((f.end_ns for f in used), default=0)
+    return {'rosbag2_bagfile_information': {
+        'version': METADATA_VERSION,
+        'storage_identifier': 'mcap',
+        'duration': {'nanoseconds': end - start},
+        'starting_time': stamp(start),
+        'message_count': sum(t.count for t in topics),
+        'topics_with_message_count': [
+            {'topic_metadata': {'name': t.name, 'type': t.type,
+                                'serialization_format': 'cdr',
+                                'offered_qos_profiles': t.qos_yaml,
+                                'type_description_hash': t.type_hash},
+             'message_count': t.count}
+            for t in topics],
+        'compression_format': '',
+        'compression_mode': '',
+        'relative_file_paths': [f.path for f in files],
+        'files': [{'path': f.path, 'starting_time': stamp(f.start_ns),
+                   'duration': {'nanoseconds': f.end_ns - f.start_ns},
+                   'message_count': f.count} for f in files],
+        'custom_data': {},
+        'ros_distro': ROS_DISTRO}}
+
+
+def write_metadata(directory, metadata):
+    """Replace <directory>/metadata.yaml atomically: a reader never sees half a file."""
+    tmp = os.path.join(directory, METADATA_FILE + '.tmp')
+    with open(tmp, 'w') as f:
+        yaml.safe_dump(metadata, f, sort_keys=False)
+    os.replace(tmp, os.path.join(directory, METADATA_FILE))
 
 
 class BagWriter:
     """Write raw CDR messages into a rosbag2-layout MCAP bag directory.
 
     A new file starts when the current one exceeds `max_file_bytes` or spans more than
-    `max_file_seconds` of log time (0: no limit). metadata.yaml is rewritten at every split and
-    at close, so the files closed before a crash are listed.
+    `max_file_seconds` of log time (0: no limit). The chunk in progress is written and the file
+    flushed once its oldest message is `flush_period` seconds old (0: only when the chunk
+    reaches `chunk_size` bytes); call `flush_if_due()` periodically so an idle stream is
+    flushed too. `clock` (seconds, monotonic) is what `flush_period` is measured on. Not
+    thread-safe: write, flush and close from one thread (a node's executor).
     """
 
     def __init__(self, directory, max_file_bytes=0, max_file_seconds=0.0,
-                 chunk_size=1 << 20):
+                 chunk_size=1 << 20, flush_period=1.0, clock=time.monotonic):
+        if flush_period < 0:
+            raise ValueError(f'flush_period must be >= 0, not {flush_period}')
         if os.path.exists(directory) and os.listdir(directory):
             raise FileExistsError(f'bag directory {directory} exists and is not empty')
         os.makedirs(directory, exist_ok=True)
@@ -52,11 +167,14 @@ class BagWriter:
         self.max_file_bytes = max_file_bytes
         self.max_file_ns = int(max_file_seconds * 1e9)
         self.chunk_size = chunk_size
+        self.flush_period = float(flush_period)
+        self.clock = clock
         self.topics = {}               # name -> TopicInfo
         self.topic_counts = {}
         self.files = []
         self._stream = self._writer = None
         self._channel_ids = {}
+        self._pending_since = None     # clock time of the oldest message not yet on disk
         self._open_file()
 
     def add_topic(self, info: TopicInfo):
@@ -65,6 +183,7 @@ class BagWriter:
         self.topics[info.name] = info
         self.topic_counts[info.name] = 0
         self._register(info)
+        self._write_metadata()
 
     def write(self, topic, cdr_bytes, log_time_ns=None):
         if self._writer is None:
@@ -74,12 +193,40 @@ class BagWriter:
         if current.count and self._file_full(current, log_time_ns):
             self._split()
             current = self.files[-1]
+        stream = self._stream
+        written = stream.written
         self._writer.add_message(self._channel_ids[topic], log_time_ns, bytes(cdr_bytes),
                                  log_time_ns, sequence=current.count)
-        current.start_ns = log_time_ns if current.count == 0 else current.start_ns
-        current.end_ns = log_time_ns
-        current.count += 1
+        current.add(log_time_ns)
         self.topic_counts[topic] += 1
+        if stream.written != written:
+            # The chunk filled up and was written (this message with it): hand it to the OS
+            # now, not when Python's buffer happens to fill.
+            stream.flush()
+            self._pending_since = None
+        elif self._pending_since is None:
+            self._pending_since = self.clock()
+        elif self.flush_period:
+            self.flush_if_due()
+
+    def flush_if_due(self, now=None):
+        """Flush if the oldest message in memory is `flush_period` old; cheap otherwise.
+        Returns True if it flushed."""
+        if self._pending_since is None or not self.flush_period or self._writer is None:
+            return False
+        now = self.clock() if now is None else now
+        if now - self._pending_since < self.flush_period:
+            return False
+        self.flush()
+        return True
+
+    def flush(self):
+        """Write the chunk in progress, flush the file to the OS, rewrite metadata.yaml."""
+        if self._writer is None:
+            return
+        self._writer.flush()
+        self._pending_since = None
+        self._write_metadata()
 
     def close(self):
         if self._writer is None:
@@ -99,20 +246,19 @@ class BagWriter:
         return sum(self.topic_counts.values())
 
     def _file_full(self, current, log_time_ns):
-        too_big = self.max_file_bytes and self._stream.tell() >= self.max_file_bytes
+        too_big = self.max_file_bytes and self._stream.written >= self.max_file_bytes
         too_long = self.max_file_ns and log_time_ns - current.start_ns >= self.max_file_ns
         return bool(too_big or too_long)
 
     def _open_file(self):
         path = os.path.join(self.directory, f'{self.name}_{len(self.files)}.mcap')
-        self._stream = open(path, 'wb')
-        self._writer = Writer(self._stream, chunk_size=self.chunk_size,
-                              compression=CompressionType.ZSTD)
-        self._writer.start(profile='ros2', library='tsr_koopman_ctrl')
+        self._stream, self._writer = open_mcap(path, self.chunk_size)
+        self._stream.flush()           # the magic and header: the file is an MCAP from now on
         self._channel_ids = {}
-        self.files.append(_FileStats(path=os.path.basename(path)))
+        self.files.append(FileStats(path=os.path.basename(path)))
         for info in self.topics.values():
             self._register(info)
+        self._write_metadata()
 
     def _register(self, info):
         schema_id = self._writer.register_schema(
@@ -122,47 +268,17 @@ class BagWriter:
             metadata={'offered_qos_profiles': info.qos_yaml, 'topic_type_hash': info.type_hash})
 
     def _finish_file(self):
-        self._writer.add_metadata('rosbag2', {
-            'ROS_DISTRO': ROS_DISTRO,
-            'serialized_metadata': yaml.safe_dump(self._metadata(), sort_keys=False)})
-        self._writer.finish()
-        self._stream.close()
+        finish_mcap(self._stream, self._writer, self._metadata())
+        self._pending_since = None
 
     def _split(self):
         self._finish_file()
         self._open_file()
-        self._write_metadata()
 
     def _metadata(self):
-        def stamp(ns):
-            return {'nanoseconds_since_epoch': int(ns)}
-        used = [f for f in self.files if f.count]
-        start = min((f.start_ns for f in used), default=0)
-        end = max((f.end_ns for f in used), default=0)
-        return {'rosbag2_bagfile_information': {
-            'version': METADATA_VERSION,
-            'storage_identifier': 'mcap',
-            'duration': {'nanoseconds': end - start},
-            'starting_time': stamp(start),
-            'message_count': self.message_count,
-            'topics_with_message_count': [
-                {'topic_metadata': {'name': info.name, 'type': info.type,
-                                    'serialization_format': 'cdr',
-                                    'offered_qos_profiles': info.qos_yaml,
-                                    'type_description_hash': info.type_hash},
-                 'message_count': self.topic_counts[info.name]}
-                for info in self.topics.values()],
-            'compression_format': '',
-            'compression_mode': '',
-            'relative_file_paths': [f.path for f in self.files],
-            'files': [{'path': f.path, 'starting_time': stamp(f.start_ns),
-                       'duration': {'nanoseconds': f.end_ns - f.start_ns},
-                       'message_count': f.count} for f in self.files],
-            'custom_data': {},
-            'ros_distro': ROS_DISTRO}}
+        topics = [TopicStats(info.name, info.type, info.qos_yaml, info.type_hash,
+                             self.topic_counts[info.name]) for info in self.topics.values()]
+        return bag_metadata(topics, self.files)
 
     def _write_metadata(self):
-        tmp = os.path.join(self.directory, METADATA_FILE + '.tmp')
-        with open(tmp, 'w') as f:
-            yaml.safe_dump(self._metadata(), f, sort_keys=False)
-        os.replace(tmp, os.path.join(self.directory, METADATA_FILE))
+        write_metadata(self.directory, self._metadata())

@@ -1,4 +1,4 @@
-"""Constrained MPC on the learned lifted linear model (Korda & Mezic 2018), solved by OSQP."""
+"""Constrained MPC on the learned lifted linear model (Korda & Mezic 2018): a small dense QP."""
 
 import dataclasses
 from typing import ClassVar
@@ -33,10 +33,13 @@ class KoopmanMpcSettings(LawSettings):
     terminal: str = setting('local', "terminal cost: the DARE cost-to-go of the model's own "
                             "linearisation at the target ('local') or of the lifted (A, B) "
                             "('riccati')", choices=('local', 'riccati'))
+    qp_solver: str = setting('daqp', "QP solver: 'daqp' (dual active set, made for small dense "
+                             "MPC QPs) or 'osqp' (ADMM); same solutions (bench/bench_qp.py)",
+                             choices=('daqp', 'osqp'))
 
 
 class KoopmanMpc(Law):
-    """MPC on the lifted model: one OSQP QP per step, warm-started.
+    """MPC on the lifted model: one QP per step.
 
     Decision: the lifted inputs v_j = u_hat_j - u_hat_d over `horizon` steps and one slack s.
     Predictions e_k = z_k - z_d follow e+ = A e + B v + d, with d = A z_d + B u_hat_d - z_d the
@@ -53,9 +56,10 @@ class KoopmanMpc(Law):
 
     Constraints: 0 <= u <= u_max, mapped to bounds on u_hat with psi_ux frozen at the measured
     state (psi_uu is increasing); |theta_k| <= theta_max + s and l_k - 1 <= overshoot_max + s
-    (the tether is finite), read through C z_k and soft so the QP is always feasible. Only q and
-    the bounds change per step: one OSQP setup. If OSQP does not report "solved" the last move
-    is repeated and `fallbacks` counted.
+    (the tether is finite), read through C z_k and soft so the QP is always feasible. Only the
+    linear term and the bounds change per step, both affine in the lifted state (precomputed).
+    Solved by DAQP (or OSQP); if the solver reports no optimum the last move is repeated and
+    `fallbacks` counted.
 
     The default horizon is short (5 steps, 0.05 tau) on purpose: the learned model's one-step
     map is accurate near the path but its 30-step predictions carry errors that, re-planned
@@ -67,38 +71,72 @@ class KoopmanMpc(Law):
     Settings = KoopmanMpcSettings
 
     def __init__(self, settings=None, **kwargs):
-        import osqp
-        import scipy.sparse as sparse
         super().__init__(settings, **kwargs)
         s = self.settings
         self.model, self.horizon = load_model(s.model), s.horizon
         a, b = self.model.A, self.model.B
+        nz, n_steps = a.shape[0], self.horizon
         q = lifted_state_weight(self.model, s)
         self.z_ref, self.u_hat_ref = self.model.reference()
         # psi_uu(0) and psi_uu(u_max): with psi_ux(x) they bound u_hat at each step.
         self.input_range = [float(self.model.input_map(u)) for u in (0.0, self.u_max)]
-        n_steps = self.horizon
-        weights = [q] * (n_steps - 1) + [self.terminal_weight(q)]
-        self.q_bar = scipy.linalg.block_diag(*weights)
-        self.free, self.forced, self.drift_gain = prediction_matrices(a, b, n_steps)
-        self.drift = a @ self.z_ref + b[:, 0] * self.u_hat_ref - self.z_ref
-        hessian = self.forced.T @ self.q_bar @ self.forced + s.r * np.eye(n_steps)
-        theta_rows = self.forced[dynamics.THETA::a.shape[0]]   # theta_k from v (N, N)
-        length_rows = self.forced[dynamics.LENGTH_OFFSET::a.shape[0]]
-        slack, ones = np.zeros((n_steps, 1)), np.ones((n_steps, 1))
-        constraints = np.block([[np.eye(n_steps), slack],
-                                [theta_rows, ones],
-                                [theta_rows, -ones],
-                                [length_rows, -ones],
-                                [np.zeros((1, n_steps)), np.ones((1, 1))]])
-        full_hessian = scipy.linalg.block_diag(2.0 * hessian, [[2.0 * s.slack_weight]])
+        q_bar = scipy.linalg.block_diag(*([q] * (n_steps - 1) + [self.terminal_weight(q)]))
+        free, forced, drift_gain = prediction_matrices(a, b, n_steps)
+        drift = drift_gain @ self.reference_drift()
+        # Everything but e_0 is fixed: the QP's linear term and the predicted theta and l - 1
+        # without input are affine in e_0, so they are two matrix-vector products per step.
+        to_cost = 2.0 * forced.T @ q_bar
+        self.cost_gain, self.cost_offset = to_cost @ free, to_cost @ drift
+        theta, length = slice(dynamics.THETA, None, nz), slice(dynamics.LENGTH_OFFSET, None, nz)
+        self.theta_gain = free[theta]
+        self.theta_offset = drift[theta] + self.z_ref[dynamics.THETA]
+        self.length_gain = free[length]
+        self.length_offset = drift[length] + self.z_ref[dynamics.LENGTH_OFFSET]
+        hessian = forced.T @ q_bar @ forced + s.r * np.eye(n_steps)
+        self.hessian = scipy.linalg.block_diag(2.0 * hessian, [[2.0 * s.slack_weight]])
+        # Variables (v_1..v_N, s). Bounds on each first (v in the input range, s >= 0), then
+        # theta_k + s >= -theta_max, theta_k - s <= theta_max, l_k - 1 - s <= overshoot_max.
+        ones = np.ones((n_steps, 1))
+        self.rows = np.block([[forced[theta], ones], [forced[theta], -ones],
+                              [forced[length], -ones]])
+        self.linear = np.zeros(n_steps + 1)
+        self.linear[-1] = s.slack_weight
+        self.lower = np.full(n_steps + 1 + 3 * n_steps, -np.inf)
+        self.upper = np.full_like(self.lower, np.inf)
+        self.lower[n_steps] = 0.0
+        self.solve = self.solver_daqp() if s.qp_solver == 'daqp' else self.solver_osqp()
         self.reset()
-        self.solver = osqp.OSQP()
-        self.solver.setup(sparse.triu(full_hessian, format='csc'), np.zeros(n_steps + 1),
-                          sparse.csc_matrix(constraints),
-                          *self.bounds(np.zeros(n_steps * a.shape[0]), -1.0, 1.0),
-                          verbose=False, warm_starting=True, eps_abs=1e-6, eps_rel=1e-6,
-                          max_iter=4000, polishing=True)
+
+    def reference_drift(self):
+        """d = A z_d + B u_hat_d - z_d: how far the model moves per step from its reference
+        (zero for a model trained with `anchor_equilibrium`)."""
+        a, b = self.model.A, self.model.B
+        return a @ self.z_ref + b[:, 0] * self.u_hat_ref - self.z_ref
+
+    def solver_daqp(self):
+        import daqp
+        hessian, rows = np.ascontiguousarray(self.hessian), np.ascontiguousarray(self.rows)
+
+        def solve():
+            x, _, exitflag, _ = daqp.solve(hessian, self.linear, rows, self.upper, self.lower)
+            return x if exitflag == 1 else None
+        return solve
+
+    def solver_osqp(self):
+        import osqp
+        import scipy.sparse as sparse
+        solver = osqp.OSQP()
+        constraints = np.vstack([np.eye(self.horizon + 1), self.rows])
+        solver.setup(sparse.triu(self.hessian, format='csc'), self.linear,
+                     sparse.csc_matrix(constraints), np.maximum(self.lower, -1e30),
+                     np.minimum(self.upper, 1e30), verbose=False, warm_starting=True,
+                     eps_abs=1e-6, eps_rel=1e-6, max_iter=4000, polishing=True)
+
+        def solve():
+            solver.update(q=self.linear, l=self.lower, u=self.upper)
+            result = solver.solve(raise_error=False)
+            return result.x if result.info.status_val == 1 else None
+        return solve
 
     def terminal_weight(self, q):
         if self.settings.terminal == 'riccati':
@@ -107,35 +145,30 @@ class KoopmanMpc(Law):
         jacobian, b_x = self.model.local_linear_model()
         return c.T @ discrete_lqr_gain(jacobian, b_x, c @ q @ c.T, self.settings.r)[1] @ c
 
-    def bounds(self, predicted, u_hat_low, u_hat_high):
-        """OSQP's l, u for the free (v = 0) prediction `predicted` of e_1..e_N."""
-        n_steps, nz = self.horizon, self.model.A.shape[0]
-        theta = predicted[dynamics.THETA::nz] + self.z_ref[dynamics.THETA]
-        length = predicted[dynamics.LENGTH_OFFSET::nz] + self.z_ref[dynamics.LENGTH_OFFSET]
-        none = np.full(n_steps, np.inf)
-        s = self.settings
-        low = np.r_[np.full(n_steps, u_hat_low), -s.theta_max - theta, -none, -none, 0.0]
-        high = np.r_[np.full(n_steps, u_hat_high), none, s.theta_max - theta,
-                     s.overshoot_max - length, np.inf]
-        return low, high
-
     def reset(self):
         super().reset()
         self.last_move = 0.0
+        self.last_tension = None
 
     def compute(self, x):
         planar = np.asarray(x, dtype=float)[:self.model.n]
         e0 = self.model.psi_x(planar) - self.z_ref
         gain = float(self.model.psi_ux(planar))
-        u_hat_low = gain * self.input_range[0] - self.u_hat_ref
-        u_hat_high = gain * self.input_range[1] - self.u_hat_ref
-        predicted = self.free @ e0 + self.drift_gain @ self.drift
-        linear = np.r_[2.0 * self.forced.T @ self.q_bar @ predicted, self.settings.slack_weight]
-        low, high = self.bounds(predicted, u_hat_low, u_hat_high)
-        self.solver.update(q=linear, l=low, u=high)
-        result = self.solver.solve(raise_error=False)
-        if result.info.status_val == 1:   # else keep the last move rather than guess
-            self.last_move = result.x[0]
+        n_steps, settings = self.horizon, self.settings
+        self.lower[:n_steps] = gain * self.input_range[0] - self.u_hat_ref
+        self.upper[:n_steps] = gain * self.input_range[1] - self.u_hat_ref
+        self.linear[:n_steps] = self.cost_gain @ e0 + self.cost_offset
+        theta = self.theta_gain @ e0 + self.theta_offset          # predicted with v = 0
+        length = self.length_gain @ e0 + self.length_offset
+        rows = n_steps + 1
+        self.lower[rows:rows + n_steps] = -settings.theta_max - theta
+        self.upper[rows + n_steps:rows + 2 * n_steps] = settings.theta_max - theta
+        self.upper[rows + 2 * n_steps:] = settings.overshoot_max - length
+        solution = self.solve()
+        if solution is not None:   # else keep the last move rather than guess
+            self.last_move = float(solution[0])
         else:
             self.fallbacks += 1
-        return self.model.tension_from_input(planar, self.u_hat_ref + self.last_move)
+        self.last_tension = self.model.tension_from_input(
+            planar, self.u_hat_ref + self.last_move, gain, guess=self.last_tension)
+        return self.last_tension

@@ -17,8 +17,7 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     tensions = []
     for _ in range(steps):
         u = limiter(controller.compute(states[-1]))
-        with np.errstate(all='ignore'):
-            nxt = dynamics.rk4_step(states[-1], u, h, substeps)
+        nxt = dynamics.step(states[-1], u, h, substeps)
         if not dynamics.in_domain(nxt):
             break
         tensions.append(u)

@@ -11,6 +11,8 @@ in float64; tests check the two agree. Torch is not needed here: the controller'
 plain numpy.
 """
 
+import math
+
 import numpy as np
 from tsr_sim import dynamics
 
@@ -27,38 +29,52 @@ class MonotoneMap:
     def __init__(self, tensors, tension_range):
         low, high = tension_range
         self.mid, self.half = 0.5 * (low + high), 0.5 * (high - low)
-        self.slope = softplus(tensors['input_map.slope']) + 1e-3
+        self.slope = float(softplus(tensors['input_map.slope'])) + 1e-3
         self.offset = float(tensors['input_map.offset'])
         self.amplitude = softplus(tensors['input_map.amplitude'])
         self.steepness = softplus(tensors['input_map.steepness'])
         self.shift = tensors['input_map.shift']
+        #: (amplitude, steepness, shift) of each tanh term as Python floats, for the scalar
+        #: evaluations (`value_at`, `slope_at`).
+        self.terms = list(zip(self.amplitude.tolist(), self.steepness.tolist(),
+                              self.shift.tolist()))
 
     def __call__(self, u):
         s = (np.asarray(u, dtype=float)[..., None] - self.mid) / self.half
         bumps = self.amplitude * np.tanh(self.steepness * s + self.shift)
         return self.slope * s[..., 0] + self.offset + bumps.sum(axis=-1)
 
+    def value_at(self, u):
+        """psi_uu at a scalar u, on Python floats (equal to `__call__` to rounding): the inverse
+        evaluates it a few times per control step, where numpy's per-call cost would dominate."""
+        s = (float(u) - self.mid) / self.half
+        return self.slope * s + self.offset + sum(a * math.tanh(d * s + e)
+                                                  for a, d, e in self.terms)
+
     def slope_at(self, u):
         """d psi_uu / du at a scalar u (>= a / half > 0)."""
         s = (float(u) - self.mid) / self.half
-        decay = np.exp(-2.0 * np.abs(self.steepness * s + self.shift))
-        sech2 = 4.0 * decay / (1.0 + decay) ** 2   # 1 / cosh^2 without overflow
-        return (self.slope + float(np.sum(self.amplitude * self.steepness * sech2))) / self.half
+        total = self.slope
+        for a, d, e in self.terms:
+            decay = math.exp(-2.0 * abs(d * s + e))
+            total += a * d * 4.0 * decay / (1.0 + decay) ** 2   # sech^2 without overflow
+        return total / self.half
 
-    def inverse(self, value, low=0.0, high=None, tol=1e-12):
+    def inverse(self, value, low=0.0, high=None, tol=1e-12, guess=None):
         """The u with psi_uu(u) = value. It exists for every value: psi_uu is strictly
         increasing with slope >= a > 0, so onto. The bracket starts at [low, high] (default: the
-        tension range) and widens until it holds the root; then Newton steps, falling back to
-        bisection whenever a step would leave the bracket (so it always converges)."""
+        tension range) and widens until it holds the root; then Newton steps from `guess` (a
+        controller's last tension) or the bracket's middle, falling back to bisection whenever a
+        step would leave the bracket (so it always converges)."""
         lo, hi = float(low), float(self.mid + self.half if high is None else high)
         width = hi - lo
-        while self(lo) > value:
+        while self.value_at(lo) > value:
             lo, width = lo - width, 2.0 * width
-        while self(hi) < value:
+        while self.value_at(hi) < value:
             hi, width = hi + width, 2.0 * width
-        u = 0.5 * (lo + hi)
+        u = guess if guess is not None and lo < guess < hi else 0.5 * (lo + hi)
         for _ in range(200):
-            error = float(self(u)) - value
+            error = self.value_at(u) - value
             if abs(error) <= tol or hi - lo <= tol:
                 break
             if error < 0.0:
@@ -155,9 +171,11 @@ class LiftedModel:
     def psi_u(self, x, u):
         return self.psi_ux(x) * self.input_map(u)
 
-    def tension_from_input(self, x, u_hat):
-        """Invert psi_u at state x: the tension u with psi_u(x, u) = u_hat (not clamped)."""
-        return self.input_map.inverse(u_hat / float(self.psi_ux(x)))
+    def tension_from_input(self, x, u_hat, input_gain=None, guess=None):
+        """Invert psi_u at state x: the tension u with psi_u(x, u) = u_hat (not clamped).
+        `input_gain`: psi_ux(x) if the caller has it already; `guess`: a nearby tension."""
+        gain = float(self.psi_ux(x)) if input_gain is None else input_gain
+        return self.input_map.inverse(u_hat / gain, guess=guess)
 
     def predict(self, x0, u):
         """Roll the lifted system from states x0 (N, n) under tensions u (N, T): the states read

@@ -14,7 +14,7 @@ import sys
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from tsr_sim.ros_io import declare, run_node
+from tsr_sim.ros_io import declare, run_node, spin_until_quiet
 from tsr_sim.wire import LOOP_TOPIC_TYPES
 
 from tsr_koopman_ctrl.bag import definitions
@@ -59,8 +59,14 @@ class RecorderNode(Node):
             max_file_seconds=declare(self, 'max_file_duration', 0.0,
                                      'split after this many seconds (0: never)', 0.0, 1e9),
             chunk_size=declare(self, 'chunk_size', 1 << 20,
-                               'MCAP chunk size in bytes: bounds what a crash can lose',
-                               256, 1 << 30))
+                               'MCAP chunk size in bytes (a chunk is also closed every '
+                               'flush_period)', 256, 1 << 30),
+            flush_period=declare(self, 'flush_period', 1.0,
+                                 'seconds: a chunk in progress is written out at least this '
+                                 'often, so a kill -9 loses at most about this much (0: only '
+                                 'by chunk size)', 0.0, 3600.0))
+        if self.writer.flush_period > 0.0:
+            self.create_timer(min(0.2, self.writer.flush_period / 2.0), self.writer.flush_if_due)
         self.subscribed = {}
         self.create_timer(declare(self, 'discovery_period', 0.2,
                                   'seconds between looks for new topics', 0.01, 60.0),
@@ -109,8 +115,14 @@ class RecorderNode(Node):
               f'{self.writer.message_count} messages ({counts})', flush=True)
 
 
+def drain(node, executor):
+    """After a stop signal: write what the DDS readers still hold (acknowledged to the
+    publishers, so it must reach the bag) before the bag closes."""
+    spin_until_quiet(executor, lambda: node.writer.message_count)
+
+
 def main(args=None):
-    return run_node(RecorderNode, on_exit=RecorderNode.close, args=args)
+    return run_node(RecorderNode, on_exit=RecorderNode.close, args=args, drain=drain)
 
 
 if __name__ == '__main__':
