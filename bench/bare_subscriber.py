@@ -1,4 +1,5 @@
-"""Comparison for bench_recorder: a bare rclpy raw subscriber that only counts messages.
+"""Comparison for bench_recorder: a bare rclpy raw subscriber that only counts messages, on the
+executor the project's nodes use (EventsExecutor).
 
 Started as its own process; writes the count to the file named by argv[1] when stopped.
 """
@@ -7,6 +8,7 @@ import sys
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
+from rclpy.experimental import EventsExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt64
 
@@ -18,8 +20,11 @@ def main():
     node.create_subscription(UInt64, '/bench/counter', lambda _: count.__setitem__(
         0, count[0] + 1), QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1,
                                      reliability=ReliabilityPolicy.RELIABLE), raw=True)
+    executor = EventsExecutor()
+    executor.add_node(node)
     try:
-        rclpy.spin(node)
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -22,6 +22,12 @@ def test_controller_config_is_derived_from_the_law_settings():
     assert params['koopman_mpc']['horizon'] == 5 and params['linear_lqr']['q'] == [1.0] * 4
 
 
+def test_recorder_config_records_the_loop_topics():
+    from tsr_sim import wire
+    params = yaml.safe_load((CONFIG / 'recorder.yaml').read_text())
+    assert params['tsr_recorder']['ros__parameters']['topics'] == list(wire.LOOP_TOPIC_TYPES)
+
+
 @pytest.mark.ros
 def test_sim_example_params_run_a_lockstep_simulator(ros, start_node):
     from tsr_msgs.msg import TsrState

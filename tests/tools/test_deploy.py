@@ -98,3 +98,25 @@ def test_a_node_failing_at_start_is_reported_with_its_log(tmp_path, domain_id, c
     err = capsys.readouterr().err
     assert 'tsr_controller exited early' in err and 'exited with 2' in err
     assert 'nothing: no such model directory' in err     # the last lines of its log
+
+
+def test_excitation_and_run_info_are_recorded(tmp_path, domain_id):
+    """The bag says what ran (both nodes' RunInfo) and what the controller added, and the
+    commands are the law's plus exactly that excitation."""
+    from tsr_koopman_ctrl.control.excitation import Excitation
+    steps = 200
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--controller', 'linear_lqr',
+                                   '--steps', str(steps), '--set', 'excitation.kind=prbs',
+                                   '--set', 'excitation.amplitude=0.5',
+                                   '--set', 'excitation.seed=3')) == 0
+    (bag_path,) = (tmp_path / 'bags').iterdir()
+    loop = read_loop(str(bag_path))
+    assert loop.run_info['controller']['excitation']['kind'] == 'prbs'
+    assert loop.run_info['controller']['controller'] == 'linear_lqr'
+    assert loop.run_info['simulator']['scale']['mass'] == 20.0
+    expected = Excitation(kind='prbs', amplitude=0.5, seed=3)
+    np.testing.assert_allclose(loop.excitation[:steps], [expected.next() for _ in range(steps)],
+                               atol=1e-12)
+    law = LinearisedLqr()
+    want = np.clip([law.compute(x) for x in loop.x[:steps]] + loop.excitation[:steps], 0, 5)
+    np.testing.assert_allclose(loop.u[:steps], want, atol=1e-9)

@@ -18,15 +18,15 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
-from tsr_msgs.msg import SimStatus, TensionCommand, TsrState
+from tsr_msgs.msg import RunInfo, SimStatus, TensionCommand, TsrState
 from tsr_msgs.srv import ResetSim
 
 from tsr_sim import dynamics
 from tsr_sim.plant import Plant, PlantConfig, Status
 from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, LATCHED_QOS,
                             LOOP_PUBLISHER_QOS, run_node)
-from tsr_sim.wire import (CLOCK_TOPIC, RESET_SERVICE, SIM_STATUS_TOPIC, STATE_TOPIC,
-                          state_to_msg, TENSION_TOPIC)
+from tsr_sim.wire import (CLOCK_TOPIC, RESET_SERVICE, RUN_INFO_TOPIC, run_info_msg,
+                          scale_dict, SIM_STATUS_TOPIC, STATE_TOPIC, state_to_msg, TENSION_TOPIC)
 
 
 class SimNode(Node):
@@ -62,6 +62,9 @@ class SimNode(Node):
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
         self.create_subscription(TensionCommand, TENSION_TOPIC, self.on_command, COMMAND_QOS)
         self.create_service(ResetSim, RESET_SERVICE, self.on_reset)
+        self.create_publisher(RunInfo, RUN_INFO_TOPIC, LATCHED_QOS).publish(run_info_msg(
+            self.get_fully_qualified_name(), 'simulator', self.configuration(),
+            self.sim_stamp()))
 
         rate_hz = declare(self, 'rate_hz', 100.0, 'timed: simulation steps per wall second',
                           0.01, 1e5)
@@ -104,6 +107,15 @@ class SimNode(Node):
             sensor_noise_std=self._noise_std(
                 'sensor_noise_std', 'dimensionless std per component of the published state'),
             seed=declare(self, 'seed', 0, 'noise seed', 0, 2**31 - 1))
+
+    def configuration(self):
+        """What the bag records about this simulator (RunInfo): the plant and the units."""
+        config = self.plant.config
+        return {'mode': self.mode, 'step': config.step, 'substeps': config.substeps,
+                'initial_state': config.initial_state.tolist(), 'scale': scale_dict(self.scale),
+                'max_tension': config.max_tension, 'max_steps': config.max_steps,
+                'process_noise_std': list(config.process_noise_std),
+                'sensor_noise_std': list(config.sensor_noise_std), 'seed': config.seed}
 
     def _noise_std(self, name, description):
         std = declare(self, name, [0.0], description + ' ([0.0]: no noise)')

@@ -16,6 +16,8 @@ STATE_TOPIC = 'tsr/state'
 TENSION_TOPIC = 'tsr/tension_cmd'
 SIM_STATUS_TOPIC = 'tsr/sim_status'
 CONTROLLER_STATUS_TOPIC = 'tsr/controller_status'
+RUN_INFO_TOPIC = 'tsr/run_info'
+EXCITATION_TOPIC = 'tsr/excitation'
 CLOCK_TOPIC = '/clock'
 RESET_SERVICE = 'tsr/reset'
 
@@ -26,8 +28,13 @@ LOOP_TOPIC_TYPES = {
     TENSION_TOPIC: 'tsr_msgs/msg/TensionCommand',
     SIM_STATUS_TOPIC: 'tsr_msgs/msg/SimStatus',
     CONTROLLER_STATUS_TOPIC: 'tsr_msgs/msg/ControllerStatus',
+    RUN_INFO_TOPIC: 'tsr_msgs/msg/RunInfo',
+    EXCITATION_TOPIC: 'tsr_msgs/msg/Excitation',
     CLOCK_TOPIC: 'rosgraph_msgs/msg/Clock',
 }
+#: Loop topics whose publishers keep their last message for late joiners (transient local):
+#: the recorder subscribes to them transient local too, so it has them whenever it started.
+LATCHED_TOPICS = (SIM_STATUS_TOPIC, RUN_INFO_TOPIC)
 
 
 def resolve(name, namespace='/'):
@@ -78,3 +85,19 @@ def tension_msg(tension, step, stamp):
     msg.step = int(step)
     msg.tension = float(tension)
     return msg
+
+
+def run_info_msg(node_name, role, configuration, stamp):
+    """A node's configuration (a dict, written as YAML) -> RunInfo."""
+    import yaml
+    from tsr_msgs.msg import RunInfo
+    msg = RunInfo(node=node_name, role=role,
+                  configuration=yaml.safe_dump(configuration, sort_keys=False))
+    msg.header.stamp = stamp
+    return msg
+
+
+def scale_dict(scale):
+    """The units scale as recorded in a RunInfo (tsr_sim.units.Scale fields, SI)."""
+    return {'orbit_rate': scale.orbit_rate, 'tether_length': scale.tether_length,
+            'mass': scale.mass}

@@ -10,6 +10,7 @@ import numpy as np
 from tsr_sim import wire
 from tsr_sim.dynamics import PAPER_STEP
 from tsr_sim.units import Scale
+import yaml
 
 from tsr_koopman_ctrl.bag.reader import BagReader, ReadReport
 
@@ -36,6 +37,11 @@ class RecordedLoop:
     controller_status: object = None   # the last tsr_msgs/ControllerStatus, decoded
     compute_time: np.ndarray = field(default_factory=lambda: np.zeros(0))   # [s] per command
     report: ReadReport = None
+    scale: Scale = None           # the units the dimensionless arrays were converted with
+    #: What the nodes ran with ('simulator', 'controller': their RunInfo, parsed): the plant
+    #: variant, the law, its settings and model, the units scale.
+    run_info: dict = field(default_factory=dict)
+    excitation: np.ndarray = None   # (N,) dimensionless tension the controller added per step
 
     @property
     def halted(self):
@@ -65,8 +71,8 @@ def _loop_namespace(topics_by_type, namespace):
 
 def read_loop(path, scale=None, namespace=None):
     """Read the loop of a bag into a `RecordedLoop`. Republished states count once; the first
-    command per step is the one a lockstep simulator applies."""
-    scale = scale or Scale()
+    command per step is the one a lockstep simulator applies. The units scale is the one the
+    simulator recorded (RunInfo), else `scale`, else the paper's (`tsr_sim.units.Scale()`)."""
     reader = BagReader(path)
     by_topic, topics_by_type = {}, {}
     for msg, decoded in reader.decoded():
@@ -77,21 +83,31 @@ def read_loop(path, scale=None, namespace=None):
     def messages(topic):
         return by_topic.get(wire.resolve(topic, namespace), [])
 
-    states, tensions = {}, {}
+    run_info = {}
+    for decoded in messages(wire.RUN_INFO_TOPIC):
+        run_info[decoded.role] = yaml.safe_load(decoded.configuration)
+    if 'scale' in run_info.get('simulator', {}):
+        scale = Scale(**run_info['simulator']['scale'])
+    scale = scale or Scale()
+    states, tensions, excitation = {}, {}, {}
     for decoded in messages(wire.STATE_TOPIC):
         states[decoded.step] = (wire.stamp_seconds(decoded.header.stamp),
                                 wire.state_from_msg(decoded))
     for decoded in messages(wire.TENSION_TOPIC):
         tensions.setdefault(decoded.step, decoded.tension)
+    for decoded in messages(wire.EXCITATION_TOPIC):
+        excitation.setdefault(decoded.step, decoded.tension)
     steps = np.array(sorted(states))
     dim = max(states[s][1].size for s in steps)
     x = scale.state_from_si(np.array([states[s][1][:dim] for s in steps]))
     tau = np.array([scale.seconds_to_tau(states[s][0]) for s in steps])
     u = np.array([scale.tension_to_u(tensions.get(s, np.nan)) for s in steps])
+    added = np.array([scale.tension_to_u(excitation.get(s, 0.0)) for s in steps])
     sim_status = messages(wire.SIM_STATUS_TOPIC)
     controller = messages(wire.CONTROLLER_STATUS_TOPIC)
     compute = np.array([c.compute_time for c in controller if c.status in COMPUTED])
-    return RecordedLoop(step=steps, tau=tau, x=x, u=u, namespace=namespace,
+    return RecordedLoop(step=steps, tau=tau, x=x, u=u, namespace=namespace, scale=scale,
+                        run_info=run_info, excitation=added,
                         sim_status=sim_status[-1] if sim_status else None,
                         controller_status=controller[-1] if controller else None,
                         compute_time=compute, report=reader.report)

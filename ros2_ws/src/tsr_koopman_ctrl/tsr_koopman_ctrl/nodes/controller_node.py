@@ -13,21 +13,29 @@ start with one line (exit 2).
 """
 
 from collections import deque
+import dataclasses
+import hashlib
 import math
+import os
 import sys
 import time
 
 import numpy as np
 from rclpy.node import Node
-from tsr_msgs.msg import ControllerStatus, TensionCommand, TsrState
+from tsr_msgs.msg import ControllerStatus, Excitation, RunInfo, TensionCommand, TsrState
 from tsr_sim import dynamics
-from tsr_sim.ros_io import (declare, declare_scale, LOOP_PUBLISHER_QOS, LOOP_QOS, run_node)
-from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, STATE_TOPIC, state_from_msg, TENSION_TOPIC,
+from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_PUBLISHER_QOS, LOOP_QOS,
+                            run_node)
+from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, RUN_INFO_TOPIC,
+                          run_info_msg, scale_dict, STATE_TOPIC, state_from_msg, TENSION_TOPIC,
                           tension_msg)
 
 from tsr_koopman_ctrl.control import CONTROLLERS, make_controller, TensionLimiter
+from tsr_koopman_ctrl.control.excitation import Excitation as ExcitationSource
+from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import fields
+from tsr_koopman_ctrl.model.model_file import WEIGHTS_FILE
 
 DEFAULT_CONTROLLER = 'koopman_mpc'
 
@@ -60,6 +68,8 @@ class ControllerNode(Node):
                               1e-9, 1e9)
         self.limiter = TensionLimiter(self.scale.tension_to_u(max_tension))
         self.controller = make_controller(self.law_name, settings, u_max=self.limiter.u_max)
+        self.excitation = ExcitationSource(ExcitationSettings(**declare_law_settings(
+            self, ExcitationSettings, 'excitation')))
         self.safe_tension = declare(
             self, 'safe_tension', self.scale.u_to_tension(dynamics.EQUILIBRIUM_TENSION),
             'published when no state arrives for state_timeout [N] (default: u = 3, which '
@@ -76,6 +86,11 @@ class ControllerNode(Node):
         self.pub = self.create_publisher(TensionCommand, TENSION_TOPIC, LOOP_PUBLISHER_QOS)
         self.status_pub = self.create_publisher(ControllerStatus, CONTROLLER_STATUS_TOPIC,
                                                 LOOP_PUBLISHER_QOS)
+        self.excitation_pub = self.create_publisher(Excitation, EXCITATION_TOPIC,
+                                                    LOOP_PUBLISHER_QOS)
+        self.create_publisher(RunInfo, RUN_INFO_TOPIC, LATCHED_QOS).publish(run_info_msg(
+            self.get_fully_qualified_name(), 'controller', self.configuration(settings),
+            self.get_clock().now().to_msg()))
         self.create_subscription(TsrState, STATE_TOPIC, self.on_state, LOOP_QOS)
         self.create_timer(self.state_timeout, self.check_state_timeout)
         model = getattr(self.controller, 'model', None)
@@ -107,14 +122,36 @@ class ControllerNode(Node):
             self.publish_status(msg.step, ControllerStatus.NON_FINITE_OUTPUT, elapsed)
             return
         clamped = self.limiter.clamped
-        tension = self.scale.u_to_tension(self.limiter(u))
         stamp = self.get_clock().now().to_msg()
+        if self.excitation.active:
+            added = self.excitation.next()
+            u += added
+            excitation = Excitation(step=msg.step, tension=self.scale.u_to_tension(added))
+            excitation.header.stamp = stamp
+            self.excitation_pub.publish(excitation)
+        tension = self.scale.u_to_tension(self.limiter(u))
         self.pub.publish(tension_msg(tension, msg.step, stamp))
         self.counts['commands'] += 1
         status = (ControllerStatus.SOLVER_FALLBACK if self.controller.fallbacks > fallbacks
                   else ControllerStatus.CLAMPED if self.limiter.clamped > clamped
                   else ControllerStatus.OK)
         self.publish_status(msg.step, status, elapsed, tension)
+
+    def configuration(self, settings):
+        """What the bag records about this controller (RunInfo): law, settings, model and its
+        weights' hash, units scale, clamp, excitation."""
+        model = getattr(self.controller, 'model', None)
+        config = {'controller': self.law_name,
+                  'settings': {k: list(v) if isinstance(v, tuple) else v
+                               for k, v in dataclasses.asdict(settings).items()},
+                  'scale': scale_dict(self.scale),
+                  'max_tension': self.scale.u_to_tension(self.limiter.u_max),
+                  'excitation': dict(dataclasses.asdict(self.excitation.settings))}
+        if model is not None and model.path:
+            with open(os.path.join(model.path, WEIGHTS_FILE), 'rb') as weights:
+                digest = hashlib.sha256(weights.read()).hexdigest()
+            config['model'] = {'path': os.path.abspath(model.path), 'weights_sha256': digest}
+        return config
 
     def publish_status(self, step, status, compute_time=math.nan, tension=math.nan):
         msg = ControllerStatus(step=int(step), status=int(status), controller=self.law_name,

@@ -15,7 +15,7 @@ import sys
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tsr_sim.ros_io import declare, run_node, spin_until_quiet
-from tsr_sim.wire import LOOP_TOPIC_TYPES
+from tsr_sim.wire import LATCHED_TOPICS, LOOP_TOPIC_TYPES
 
 from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.bag.writer import BagWriter
@@ -72,9 +72,10 @@ class RecorderNode(Node):
                                   'seconds between looks for new topics', 0.01, 60.0),
                           self.discover)
         self.get_logger().info(f'recording {self.wanted} into {self.writer.directory}')
+        latched = {self.resolve_topic_name(t) for t in LATCHED_TOPICS}
         for topic, type_name in zip(self.wanted, types):
             if type_name:
-                self.subscribe(topic, type_name, publishers=[])
+                self.subscribe(topic, type_name, publishers=[], latched=topic in latched)
         self.discover()
 
     def discover(self):
@@ -89,13 +90,14 @@ class RecorderNode(Node):
                 continue
             self.subscribe(topic, types[topic][0], publishers)
 
-    def subscribe(self, topic, type_name, publishers):
-        """Subscribe raw; with no publisher known yet: reliable, volatile (matches any)."""
+    def subscribe(self, topic, type_name, publishers, latched=False):
+        """Subscribe raw; with no publisher known yet: reliable, and volatile (matches any)
+        unless `latched` (the loop's latched topics, whose publishers are transient local)."""
         qos = [offered_qos(p) for p in publishers]
         self.writer.add_topic(definitions.TopicInfo(
             name=topic, type=type_name, definition=definitions.message_definition(type_name),
             type_hash=definitions.type_hash(type_name), offered_qos=qos))
-        latched = bool(publishers) and all(
+        latched = latched or bool(publishers) and all(
             p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
         profile = QoSProfile(
             history=HistoryPolicy.KEEP_ALL, depth=1000, reliability=ReliabilityPolicy.RELIABLE,

@@ -8,13 +8,14 @@ The file is derived, never edited by hand: a test checks it equals this output.
 import sys
 
 from tsr_koopman_ctrl.control import CONTROLLERS
+from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.settings import fields
 
 HEADER = """\
 # Example parameters for tsr_koopman_ctrl/controller_node (the defaults), written by
 # `python -m tsr_koopman_ctrl.tools.config` from the laws' settings classes: do not edit by hand.
 #   ros2 run tsr_koopman_ctrl controller_node --ros-args --params-file controller.yaml
-# Only the settings of the law named by `controller` are declared by the node.
+# The node declares the settings of the law named by `controller`, and the excitation's.
 """
 
 
@@ -30,9 +31,11 @@ def example_yaml(node_name='tsr_controller', default_law='koopman_mpc'):
     lines = [HEADER.rstrip('\n'), f'{node_name}:', '  ros__parameters:',
              f'    controller: {default_law}   # one of {", ".join(sorted(CONTROLLERS))}',
              '    state_timeout: 5.0        # s without a state -> safe_tension']
-    for law in sorted(CONTROLLERS):
+    sections = {law: CONTROLLERS[law].Settings for law in sorted(CONTROLLERS)}
+    sections['excitation'] = ExcitationSettings   # added to any law's tension; off by default
+    for law, settings in sections.items():
         lines.append(f'    {law}:')
-        for name, default, meta in fields(CONTROLLERS[law].Settings):
+        for name, default, meta in fields(settings):
             value = (f'[{", ".join(scalar(v) for v in default)}]'
                      if isinstance(default, tuple) else scalar(default))
             lines += [f'      # {meta["description"]}', f'      {name}: {value}']

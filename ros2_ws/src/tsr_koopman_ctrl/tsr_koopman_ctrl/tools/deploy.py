@@ -24,6 +24,7 @@ from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.control import CONTROLLERS
+from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
@@ -38,8 +39,8 @@ def parse_args(argv):
     parser.add_argument('--model', help='model directory or shipped model name for the '
                         'koopman_* laws (default: their `model` setting, koopman_default)')
     parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
-                        help='a law setting (repeatable), e.g. koopman_mpc.horizon=8; '
-                        'sequences as a,b,c')
+                        help='a law setting (repeatable), e.g. koopman_mpc.horizon=8, or the '
+                        'excitation: excitation.kind=prbs; sequences as a,b,c')
     parser.add_argument('--steps', type=int, default=2000,
                         help='simulation steps of h = 0.01 tau (paper: 2000)')
     parser.add_argument('--x0', type=float, nargs=4, default=dynamics.PAPER_INITIAL_STATE,
@@ -65,23 +66,29 @@ def parse_args(argv):
     return args
 
 
+def settings_class(section):
+    """The settings class of a --set section: a law's, or the excitation's."""
+    return ExcitationSettings if section == 'excitation' else law_class(section).Settings
+
+
 def law_settings(assignments, model):
-    """{law: {setting: value}} from --set LAW.SETTING=VALUE and --model (checked here, so a
-    typo fails before any process starts)."""
+    """{section: {setting: value}} from --set SECTION.SETTING=VALUE (a law, or `excitation`)
+    and --model, checked here so a typo fails before any process starts."""
     settings = {}
     for assignment in assignments:
         key, sep, text = assignment.partition('=')
-        law, dot, name = key.partition('.')
+        section, dot, name = key.partition('.')
         if not (sep and dot):
             raise ValueError(f'--set takes LAW.SETTING=VALUE, got {assignment!r}')
-        settings.setdefault(law, {})[name] = parse_value(law_class(law).Settings, name, text)
+        settings.setdefault(section, {})[name] = parse_value(settings_class(section), name,
+                                                             text)
     if model is not None:
         for law, cls in CONTROLLERS.items():
             if 'model' in {f for f in cls.Settings.__dataclass_fields__}:
                 path = os.path.abspath(model) if os.path.isdir(model) else model
                 settings.setdefault(law, {})['model'] = path
-    for law, values in settings.items():
-        law_class(law).Settings(**values)   # ranges and choices, one line if wrong
+    for section, values in settings.items():
+        settings_class(section)(**values)   # ranges and choices, one line if wrong
     return settings
 
 
@@ -105,8 +112,8 @@ def run(args, controller, x0, run_dir, name):
 
     recorder = start('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
                      {'output_dir': args.bags, 'bag_name': name})
-    law = {controller: args.law_settings[controller]} \
-        if args.law_settings.get(controller) else {}
+    law = {section: args.law_settings[section] for section in (controller, 'excitation')
+           if args.law_settings.get(section)}
     control = start('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
                     {'controller': controller, 'wait_for_subscribers': 2, **law})
     sim = start('tsr_sim', 'sim_node', 'tsr_sim',
