@@ -13,11 +13,14 @@ from tsr_koopman_ctrl.control.settings import LawSettings, setting
 @dataclasses.dataclass(frozen=True)
 class FractionalPdSettings(LawSettings):
     law: ClassVar[str] = 'fractional_pd'
-    alpha: float = setting(0.9, 'order of the fractional derivative', low=0.01, high=1.5)
+    alpha: float = setting(0.9, 'order of the fractional derivative', low=0.01, high=1.5,
+                           tune=(0.5, 1.2, 'linear'))
     #: The linear_lqr gains for Q = I, R = 1 (a test checks they still are).
     gains: tuple = setting((2.872, -0.392, -6.162, -3.429),
                            'gains (k_theta, d_theta, k_l, d_l) on theta, D^alpha theta, l - 1, '
-                           'D^alpha (l - 1)')
+                           'D^alpha (l - 1)',
+                           tune=[(0.0, 10.0, 'linear'), (-5.0, 5.0, 'linear'),
+                                 (-20.0, 0.0, 'linear'), (-20.0, 0.0, 'linear')])
     memory: int = setting(200, 'samples of the Grunwald-Letnikov sum', low=1, high=100_000)
 
 

@@ -16,12 +16,13 @@ from tsr_koopman_ctrl.model.shipped import DEFAULT_MODEL
 class KoopmanLqrSettings(LawSettings):
     law: ClassVar[str] = 'koopman_lqr'
     model: str = setting(DEFAULT_MODEL, 'model directory, or the name of a shipped model')
-    r: float = setting(15.0, "input weight R' on the lifted input (paper: 15)", low=1e-9)
+    r: float = setting(15.0, "input weight R' on the lifted input (paper: 15)", low=1e-9,
+                       tune=(1e-2, 1e3, 'log'))
     state_weight: str = setting('lifted', "Q' = I on the lifted state ('lifted', the paper's "
                                 "setting) or C^T diag(q) C on the state ('state')",
-                                choices=('lifted', 'state'))
+                                choices=('lifted', 'state'), tune=['lifted', 'state'])
     q: tuple = setting((1.0, 1.0, 1.0, 1.0), "state weights q of Q' = C^T diag(q) C "
-                       "(state_weight 'state')", low=0.0)
+                       "(state_weight 'state')", low=0.0, tune=(1e-2, 1e2, 'log'))
 
 
 def load_model(model):

@@ -15,8 +15,8 @@ from tsr_koopman_ctrl.control.settings import LawSettings, setting
 class LinearLqrSettings(LawSettings):
     law: ClassVar[str] = 'linear_lqr'
     q: tuple = setting((1.0, 1.0, 1.0, 1.0), 'state weights Q = diag(q) on [theta, theta\', '
-                       'l - 1, l\']', low=0.0)
-    r: float = setting(1.0, 'input weight R on u', low=1e-9)
+                       'l - 1, l\']', low=0.0, tune=(1e-2, 1e2, 'log'))
+    r: float = setting(1.0, 'input weight R on u', low=1e-9, tune=(1e-2, 1e2, 'log'))
 
 
 class LinearisedLqr(Law):

@@ -7,14 +7,17 @@ import dataclasses
 import math
 
 
-def setting(default, description, low=None, high=None, choices=None):
+def setting(default, description, low=None, high=None, choices=None, tune=None):
     """A settings field: its default, a one-line description with units, a range or choices.
-    A sequence default (a tuple) fixes the number of values the setting takes."""
+    A sequence default (a tuple) fixes the number of values the setting takes. `tune`: the
+    search space of tools/tune.py, (low, high, 'log' or 'linear') for a number or for every
+    component of a sequence, a list of such triples (one per component), or a list of choices
+    for a string; None: not tuned."""
     if isinstance(default, list):
         default = tuple(default)
     return dataclasses.field(default=default, metadata={
         'description': description, 'low': low, 'high': high, 'choices': choices,
-        'size': len(default) if isinstance(default, tuple) else None})
+        'size': len(default) if isinstance(default, tuple) else None, 'tune': tune})
 
 
 @dataclasses.dataclass(frozen=True)

@@ -4,7 +4,7 @@ The 1% zone (paper, Section IV-D): |theta| <= 0.01 and |l - 1| <= 0.01, reached 
 """
 
 import numpy as np
-from tsr_sim.dynamics import LENGTH_OFFSET, THETA
+from tsr_sim.dynamics import LENGTH_OFFSET, PAPER_STEP, THETA
 
 from tsr_koopman_ctrl.evaluation.frontier import frontier_tau
 
@@ -51,3 +51,14 @@ def run_figures(tau, states, tensions, start=None, halted=False):
         'frontier_tau': frontier,
         'frontier_ratio': None if frontier is None else settle / frontier,
     }
+
+
+def closed_loop_figures(law, start, steps=2000):
+    """`run_figures` of `law` closed on the dynamics module from `start` for `steps` steps (the
+    DDS loop is step-identical to this one), with the law's solver fallbacks."""
+    from tsr_koopman_ctrl.control.loop import closed_loop
+    states, tensions = closed_loop(law, start, steps)
+    figures = run_figures(np.arange(len(states)) * PAPER_STEP, states, tensions, start=start,
+                          halted=len(states) <= steps)
+    figures['fallbacks'] = getattr(law, 'fallbacks', 0)
+    return figures

@@ -8,3 +8,8 @@ PAPER_START = tuple(float(v) for v in dynamics.PAPER_INITIAL_STATE)
 #: The comparison's starts: the paper's and three other initial lengths and deployment rates.
 COMPARISON_STARTS = (PAPER_START, (0.0, 0.0, -0.9, 0.3), (0.0, 0.0, -0.95, 1.0),
                      (0.0, 0.0, -0.7, 0.0))
+
+#: Starts the tuning never sees (tools/tune.py tunes on COMPARISON_STARTS): an initial swing and
+#: swing rate, l0 from 0.01 to 0.5 and l'0 from 0 to 1.
+HELD_OUT_STARTS = ((0.1, -0.1, -0.9, 0.5), (-0.2, 0.2, -0.6, 0.2), (0.15, 0.05, -0.99, 1.0),
+                   (-0.1, -0.2, -0.5, 0.0), (0.05, 0.1, -0.8, 0.8))

@@ -16,21 +16,15 @@ import numpy as np
 from tqdm import tqdm
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.control import closed_loop, KoopmanMpc
+from tsr_koopman_ctrl.control import KoopmanMpc
 from tsr_koopman_ctrl.control.koopman_lqr import load_model
-from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
+from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS
 from tsr_koopman_ctrl.model import DEFAULT_MODEL
 
 
 def run(model, horizon, x0, steps):
-    """One closed loop's figures (`evaluation.run_figures`) and the MPC's solver fallbacks."""
-    mpc = KoopmanMpc(model=model, horizon=horizon)
-    states, tensions = closed_loop(mpc, x0, steps)
-    halted = len(states) <= steps
-    figures = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions,
-                          halted=halted)
-    figures.update(fallbacks=mpc.fallbacks)
-    return figures
+    """One closed loop's figures (`evaluation.closed_loop_figures`)."""
+    return closed_loop_figures(KoopmanMpc(model=model, horizon=horizon), x0, steps)
 
 
 def cell(figures):

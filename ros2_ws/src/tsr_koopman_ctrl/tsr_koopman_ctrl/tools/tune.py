@@ -1,0 +1,222 @@
+"""Tune a law's settings with Optuna, the same way for every law, and score it on held-out starts.
+
+    python -m tsr_koopman_ctrl.tools.tune --law linear_lqr [--trials 60] [--jobs 2]
+        [--storage out/tune/linear_lqr.journal | postgresql://...] [--swing-max 0.8]
+
+The search space is each setting's `tune` entry in its law's Settings class (the one
+declaration). A trial closes the law on the dynamics module (step-identical to the DDS loop) from
+every tuning start (`evaluation.starts.COMPARISON_STARTS`) and scores the mean settle time into
+the 1% zone; a start that does not settle, halts, or swings beyond --swing-max scores
+PENALTY_TAU. The law's own settings are the first trial, so tuning never reports worse than the
+default. The study lives in Optuna's storage: a journal file here (several processes share it:
+--jobs starts them), a database URL where users have a server; running the command again resumes
+it up to --trials in total. At the end the best settings are scored on the held-out starts
+(`HELD_OUT_STARTS`), which the tuning never saw, and written to <out>/<study>.json and .md.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+from tsr_koopman_ctrl.control import CONTROLLERS
+from tsr_koopman_ctrl.control.registry import law_class
+from tsr_koopman_ctrl.control.settings import fields
+from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS, HELD_OUT_STARTS
+
+#: Score of a start that does not settle, halts or swings too far: twice the 20-tau run.
+PENALTY_TAU = 40.0
+
+
+def tunable(law):
+    """[(setting, default, tune spec)] of a law."""
+    return [(name, default, meta['tune']) for name, default, meta in
+            fields(law_class(law).Settings) if meta.get('tune') is not None]
+
+
+def suggest(trial, law):
+    """Settings of a trial, sampled from each setting's `tune` entry."""
+    settings = {}
+    for name, default, spec in tunable(law):
+        if isinstance(spec, list) and spec and isinstance(spec[0], str):
+            settings[name] = trial.suggest_categorical(name, spec)
+        elif isinstance(default, tuple):
+            specs = spec if isinstance(spec, list) else [spec] * len(default)
+            settings[name] = tuple(number(trial, f'{name}_{i}', s) for i, s in enumerate(specs))
+        else:
+            settings[name] = number(trial, name, spec, integer=isinstance(default, int))
+    return settings
+
+
+def number(trial, name, spec, integer=False):
+    low, high, scale = spec
+    if integer:
+        return trial.suggest_int(name, int(low), int(high), log=scale == 'log')
+    return trial.suggest_float(name, low, high, log=scale == 'log')
+
+
+def as_params(law, settings):
+    """The inverse of `suggest`: Optuna parameters of given settings (to enqueue a trial)."""
+    params = {}
+    for name, default, spec in tunable(law):
+        value = settings.get(name, default)
+        if isinstance(value, tuple):
+            params.update({f'{name}_{i}': v for i, v in enumerate(value)})
+        else:
+            params[name] = value
+    return params
+
+
+def score(law, settings, starts, swing_max, steps):
+    """(mean score over starts, per-start figures). A law that cannot be built scores the
+    penalty everywhere."""
+    try:
+        controller = law_class(law)(**settings)
+    except ValueError as error:
+        return PENALTY_TAU, [{'error': str(error)}] * len(starts)
+    runs, scores = [], []
+    for start in starts:
+        figures = closed_loop_figures(controller, start, steps)
+        ok = figures['settle_tau'] is not None and figures['swing'] <= swing_max
+        scores.append(figures['settle_tau'] if ok else PENALTY_TAU)
+        runs.append(figures)
+    return sum(scores) / len(scores), runs
+
+
+def study_name(args):
+    return args.study or f'{args.law}_swing{args.swing_max:g}'
+
+
+def open_study(args):
+    import optuna
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    if '://' in args.storage:
+        storage = args.storage
+    else:
+        os.makedirs(os.path.dirname(os.path.abspath(args.storage)), exist_ok=True)
+        storage = JournalStorage(JournalFileBackend(args.storage))
+    return optuna.create_study(study_name=study_name(args), storage=storage,
+                               direction='minimize', load_if_exists=True,
+                               sampler=optuna.samplers.TPESampler(seed=args.seed + args.worker))
+
+
+def worker(args):
+    """Run trials until the study holds --trials finished ones."""
+    import optuna
+    from optuna.study import MaxTrialsCallback
+    study = open_study(args)
+    if len(study.trials) == 0 and args.worker == 0:
+        study.enqueue_trial(as_params(args.law, {}))     # the law's own settings first
+    states = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL)
+
+    def objective(trial):
+        settings = suggest(trial, args.law)
+        value, runs = score(args.law, settings, COMPARISON_STARTS, args.swing_max, args.steps)
+        trial.set_user_attr('settings', {k: list(v) if isinstance(v, tuple) else v
+                                         for k, v in settings.items()})
+        trial.set_user_attr('settle', [r.get('settle_tau') for r in runs])
+        return value
+
+    if finished(study) < args.trials:
+        study.optimize(objective, callbacks=[MaxTrialsCallback(args.trials, states=states)])
+
+
+def finished(study):
+    import optuna
+    done = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL)
+    return sum(t.state in done for t in study.get_trials(deepcopy=False))
+
+
+def run_workers(args, argv):
+    """--jobs processes on the one study, with a progress bar over its finished trials."""
+    from tqdm import tqdm
+    study = open_study(args)
+    procs = [subprocess.Popen([sys.executable, '-m', 'tsr_koopman_ctrl.tools.tune', *argv,
+                               '--worker', str(i)]) for i in range(args.jobs)]
+    with tqdm(total=args.trials, desc=study_name(args), unit='trial', file=sys.stdout) as bar:
+        while any(p.poll() is None for p in procs):
+            bar.n = min(finished(study), args.trials)
+            bar.refresh()
+            time.sleep(1.0)
+        bar.n = min(finished(study), args.trials)
+        bar.refresh()
+    if any(p.returncode for p in procs):
+        raise RuntimeError(f'a tuning worker failed: exit codes {[p.returncode for p in procs]}')
+    return study
+
+
+def report(args, study):
+    best = study.best_trial
+    settings = {k: tuple(v) if isinstance(v, list) else v
+                for k, v in best.user_attrs['settings'].items()}
+    results = {}
+    for label, starts in (('tuning', COMPARISON_STARTS), ('held_out', HELD_OUT_STARTS)):
+        for tag, values in (('default', {}), ('tuned', settings)):
+            mean, runs = score(args.law, values, starts, args.swing_max, args.steps)
+            results[f'{label}_{tag}'] = {'mean_score': mean, 'runs': runs}
+    summary = {'law': args.law, 'study': study_name(args), 'trials': finished(study),
+               'swing_max': args.swing_max, 'best_value': best.value,
+               'best_settings': {k: list(v) if isinstance(v, tuple) else v
+                                 for k, v in settings.items()},
+               'tuning_starts': [list(s) for s in COMPARISON_STARTS],
+               'held_out_starts': [list(s) for s in HELD_OUT_STARTS], 'results': results}
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, study_name(args))
+    with open(path + '.json', 'w') as f:
+        json.dump(summary, f, indent=1)
+    lines = [f"{args.law}: {summary['trials']} trials, best mean settle {best.value:.2f} tau on "
+             f'the tuning starts (swing <= {args.swing_max:g} rad)',
+             f"best settings: {summary['best_settings']}", '',
+             '| starts | settings | settle tau per start (swing) | mean score |',
+             '|---|---|---|---|']
+    for key, result in results.items():
+        cells = ', '.join('-' if r.get('settle_tau') is None else
+                          f"{r['settle_tau']:.2f} ({r['swing']:.2f})" for r in result['runs'])
+        label, tag = key.split('_', 1) if key.startswith('tuning') else ('held-out', key[9:])
+        lines.append(f"| {label} | {tag} | {cells} | {result['mean_score']:.2f} |")
+    text = '\n'.join(lines) + '\n'
+    with open(path + '.md', 'w') as f:
+        f.write(text)
+    print(text)
+
+
+def parser():
+    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p.add_argument('--law', required=True, choices=sorted(CONTROLLERS))
+    p.add_argument('--trials', type=int, default=60, help='finished trials in the study')
+    p.add_argument('--jobs', type=int, default=1, help='worker processes on the study')
+    p.add_argument('--storage', help='journal file or database URL '
+                   '(default: <out>/<study>.journal)')
+    p.add_argument('--study', help='study name (default: <law>_swing<swing-max>)')
+    p.add_argument('--swing-max', type=float, default=0.8, help='largest |theta| a run may '
+                   'reach and still count as settled [rad]')
+    p.add_argument('--steps', type=int, default=2000)
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--out', default=os.path.join('out', 'tune'))
+    p.add_argument('--worker', type=int, default=None, help=argparse.SUPPRESS)
+    return p
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = parser().parse_args(argv)
+    args.storage = args.storage or os.path.join(args.out, study_name(args) + '.journal')
+    if args.worker is not None:
+        worker(args)
+        return 0
+    args.worker = 0
+    try:
+        study = run_workers(args, argv)
+    except RuntimeError as error:
+        print(f'tune: {error}', file=sys.stderr)
+        return 1
+    report(args, study)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,37 @@
+"""The tuning command: the law's own settings first, a study that resumes, held-out scoring."""
+
+import json
+
+import pytest
+
+from tsr_koopman_ctrl.control import LinearisedLqr
+from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS
+from tsr_koopman_ctrl.tools import tune
+
+
+def test_a_study_resumes_and_reports_on_held_out_starts(tmp_path):
+    args = ['--law', 'linear_lqr', '--steps', '1000', '--out', str(tmp_path)]
+    assert tune.main([*args, '--trials', '2']) == 0
+    assert tune.main([*args, '--trials', '4', '--jobs', '2']) == 0     # resumes the journal
+    summary = json.loads((tmp_path / 'linear_lqr_swing0.8.json').read_text())
+    assert summary['trials'] >= 4
+    # The first trial is the law's own settings, so the best is never worse than the default.
+    default = summary['results']['tuning_default']['mean_score']
+    assert summary['best_value'] <= default
+    assert len(summary['results']['held_out_tuned']['runs']) == 5
+    # The report's figures are the closed loop's own.
+    first = closed_loop_figures(LinearisedLqr(), COMPARISON_STARTS[0], 1000)
+    assert summary['results']['tuning_default']['runs'][0]['settle_tau'] == first['settle_tau']
+
+
+def test_the_search_space_comes_from_the_settings_classes():
+    import optuna
+    trial = optuna.trial.FixedTrial({'q_0': 2.0, 'q_1': 3.0, 'q_2': 4.0, 'q_3': 5.0, 'r': 0.5})
+    assert tune.suggest(trial, 'linear_lqr') == {'q': (2.0, 3.0, 4.0, 5.0), 'r': 0.5}
+    assert set(tune.as_params('koopman_mpc', {})) == {'horizon', 'r', 'q_0', 'q_1', 'q_2',
+                                                      'q_3'}
+
+
+@pytest.mark.parametrize('settings, expected', [({'r': -1.0}, tune.PENALTY_TAU)])
+def test_a_law_that_cannot_be_built_scores_the_penalty(settings, expected):
+    assert tune.score('linear_lqr', settings, COMPARISON_STARTS[:1], 0.8, 100)[0] == expected
