@@ -120,3 +120,22 @@ def test_excitation_and_run_info_are_recorded(tmp_path, domain_id):
     law = LinearisedLqr()
     want = np.clip([law.compute(x) for x in loop.x[:steps]] + loop.excitation[:steps], 0, 5)
     np.testing.assert_allclose(loop.u[:steps], want, atol=1e-9)
+
+
+def test_a_plant_variant_over_dds_is_the_ros_free_one(tmp_path, domain_id):
+    """--plant actuator_weak: the simulator runs the variant (its RunInfo says so) and the DDS
+    loop equals the ROS-free loop on the same plant file, step for step."""
+    from tsr_sim.plant import plant_parameters
+    steps = 300
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--controller', 'linear_lqr',
+                                   '--steps', str(steps), '--plant', 'actuator_weak')) == 0
+    (bag_path,) = (tmp_path / 'bags').iterdir()
+    loop = read_loop(str(bag_path))
+    assert loop.run_info['simulator']['plant'] == 'actuator_weak'
+    assert loop.run_info['simulator']['variant']['actuator_gain'] == 0.9
+    want_x, want_u = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, steps,
+                                 plant=plant_parameters('actuator_weak'))
+    np.testing.assert_allclose(loop.x, want_x, atol=1e-9)
+    np.testing.assert_allclose(loop.u[:steps], want_u, atol=1e-9)
+    nominal_x, _ = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, steps)
+    assert np.abs(nominal_x - want_x).max() > 1e-3     # the variant does change the run

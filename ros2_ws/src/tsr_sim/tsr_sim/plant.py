@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from tsr_sim import dynamics
+from tsr_sim import dynamics, variants
 from tsr_sim.units import Scale
 
 
@@ -46,6 +46,8 @@ class PlantConfig:
     process_noise_std: tuple = ()         # per state component, dimensionless, added per step
     sensor_noise_std: tuple = ()          # per state component, dimensionless, on measurements
     seed: int = 0
+    #: How the true plant differs from the nominal model (off by default; `variants`).
+    variant: variants.PlantVariant = field(default_factory=variants.PlantVariant)
 
     def __post_init__(self):
         self.initial_state = np.asarray(self.initial_state, dtype=float)
@@ -58,12 +60,74 @@ class PlantConfig:
             raise ValueError(f'substeps must be >= 1, got {self.substeps}')
         if not self.max_tension > 0.0:
             raise ValueError(f'max_tension must be > 0, got {self.max_tension}')
+        if self.variant.eccentricity > 0.0 and self.initial_state.size != dynamics.PLANAR_DIM:
+            raise ValueError('the eccentric-orbit variant is planar only')
         for name in ('process_noise_std', 'sensor_noise_std'):
             std = tuple(getattr(self, name))
             if std and (len(std) != self.initial_state.size or min(std) < 0.0):
                 raise ValueError(f'{name} needs {self.initial_state.size} values >= 0, '
                                  f'got {std}')
             setattr(self, name, std)
+
+
+#: The simulator's plant parameters, declared once: name -> (default, description, low, high).
+#: The simulator node declares them as ROS parameters; `config_from_parameters` turns a mapping
+#: of them (the node's values, or a plant file under config/plants/) into a PlantConfig.
+PLANT_PARAMETERS = {
+    'initial_state': (dynamics.PAPER_INITIAL_STATE.tolist(),
+                      "dimensionless [theta, theta', l-1, l'] (6 values add beta, beta')",
+                      None, None),
+    'step': (dynamics.PAPER_STEP, 'sample period h [tau]', 1e-6, 10.0),
+    'substeps': (10, 'RK4 substeps per sample period', 1, 10000),
+    'max_steps': (0, 'stop after this many steps (0: never)', 0, 10 ** 12),
+    'process_noise_std': ([0.0], 'dimensionless std per state component, added per step '
+                          '([0.0]: none)', None, None),
+    'sensor_noise_std': ([0.0], 'dimensionless std per component of the published state '
+                         '([0.0]: none)', None, None),
+    'seed': (0, 'noise seed', 0, 2 ** 31 - 1),
+    'actuator_gain': (1.0, 'tension actuator: applied / commanded tension', 1e-3, 100.0),
+    'actuator_bias': (0.0, 'tension actuator: bias added to the applied tension [N]', -1e6, 1e6),
+    'actuator_lag': (0.0, 'tension actuator: first-order time constant [tau] (0: none)', 0.0,
+                     100.0),
+    'eccentricity': (0.0, 'orbit eccentricity (0: circular, the nominal model)', 0.0, 0.99),
+    'initial_anomaly': (0.0, 'true anomaly at the start [rad] (eccentric orbit)', -7.0, 7.0),
+    'out_of_plane': (False, 'start the 3-D model with initial_beta appended to the state',
+                     None, None),
+    'initial_beta': ([0.0, 0.0], "out_of_plane: [beta, beta'] at the start (rad, "
+                     'dimensionless rate)', None, None),
+}
+
+
+SCALE_PARAMETERS = ('orbit_rate', 'tether_length', 'mass')
+
+
+def config_from_parameters(values, scale=None):
+    """A PlantConfig from simulator parameters: any subset of PLANT_PARAMETERS (the defaults for
+    the rest), the units (`orbit_rate`, `tether_length`, `mass`: the true plant's, else those of
+    `scale`, else the paper's), `max_tension` [N] (default u = TENSION_LIMIT at those units),
+    and `plant` (the variant's name, not part of the config)."""
+    unknown = set(values) - set(PLANT_PARAMETERS) - set(SCALE_PARAMETERS) - {'max_tension',
+                                                                             'plant'}
+    if unknown:
+        raise ValueError(f'unknown plant parameters {sorted(unknown)}')
+    scale = scale or Scale()
+    scale = Scale(**{name: values.get(name, getattr(scale, name)) for name in SCALE_PARAMETERS})
+    v = {name: values.get(name, spec[0]) for name, spec in PLANT_PARAMETERS.items()}
+    initial = list(v['initial_state'])
+    if v['out_of_plane']:
+        initial = initial[:dynamics.PLANAR_DIM] + list(v['initial_beta'])
+    variant = variants.PlantVariant(
+        actuator_gain=v['actuator_gain'], actuator_bias=scale.tension_to_u(v['actuator_bias']),
+        actuator_lag=v['actuator_lag'], eccentricity=v['eccentricity'],
+        initial_anomaly=v['initial_anomaly'])
+
+    def noise(std):
+        return tuple(std) if any(std) else ()
+    return PlantConfig(
+        initial_state=initial, step=v['step'], substeps=v['substeps'], scale=scale,
+        max_tension=values.get('max_tension', scale.u_to_tension(dynamics.TENSION_LIMIT)),
+        max_steps=v['max_steps'], process_noise_std=noise(v['process_noise_std']),
+        sensor_noise_std=noise(v['sensor_noise_std']), seed=v['seed'], variant=variant)
 
 
 class Plant:
@@ -90,6 +154,8 @@ class Plant:
         if not dynamics.in_domain(state):
             return 'reset state is outside the model domain (needs finite values and l > 0)'
         self.state = state.copy()
+        self.actuator = None   # the actuator starts at rest on the first command
+        self.anomaly = self.config.variant.initial_anomaly
         self.step_index = 0
         self.status = Status.RUNNING
         self.message = 'running'
@@ -121,7 +187,14 @@ class Plant:
         if self.status is not Status.RUNNING:
             return
         u = self.config.scale.tension_to_u(tension)
-        nxt = dynamics.step(self.state, u, self.config.step, self.config.substeps)
+        variant = self.config.variant
+        if variant.nominal:
+            nxt = dynamics.step(self.state, u, self.config.step, self.config.substeps)
+        else:
+            actuator = u if self.actuator is None else self.actuator
+            augmented = variants.step(variant, np.r_[self.state, actuator, self.anomaly], u,
+                                      self.config.step, self.config.substeps)
+            nxt, (actuator, anomaly) = augmented[:-2], augmented[-2:]
         with np.errstate(all='ignore'):
             nxt = nxt + self._noise(self.config.process_noise_std)
         if not dynamics.in_domain(nxt):
@@ -131,6 +204,8 @@ class Plant:
                             'integration stopped, reset to continue')
             return
         self.state = nxt
+        if not variant.nominal:
+            self.actuator, self.anomaly = actuator, anomaly
         self.step_index += 1
         if self.config.max_steps and self.step_index >= self.config.max_steps:
             self.status = Status.FINISHED
@@ -144,3 +219,35 @@ class Plant:
         if not std:
             return 0.0
         return self._rng.normal(0.0, std)
+
+
+def plant_file(name):
+    """Path of a plant variant file: a YAML path as given, or a variant's name under the
+    installed share/tsr_sim/config/plants (ValueError naming the paths tried)."""
+    import os
+    if os.path.isfile(name):
+        return name
+    tried = [os.path.abspath(name)]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        candidate = os.path.join(get_package_share_directory('tsr_sim'), 'config', 'plants',
+                                 f'{name}.yaml')
+        if os.path.isfile(candidate):
+            return candidate
+        tried.append(candidate)
+    except (ImportError, LookupError):
+        tried.append('share/tsr_sim/config/plants (package not found: is the workspace sourced?)')
+    raise ValueError(f'no plant variant {name!r} (tried {", ".join(tried)})')
+
+
+def plant_parameters(name):
+    """The simulator parameters of a plant variant file (its ros__parameters)."""
+    import yaml
+    path = plant_file(name)
+    with open(path) as stream:
+        document = yaml.safe_load(stream) or {}
+    try:
+        (section,) = document.values()
+        return dict(section['ros__parameters'])
+    except (ValueError, KeyError, TypeError, AttributeError):
+        raise ValueError(f'{path}: not a parameter file with one node section')

@@ -11,6 +11,7 @@ Modes:
 All maths and command checks are in tsr_sim.plant (ROS-free); this file converts and schedules.
 """
 
+import dataclasses
 import sys
 import time
 
@@ -22,7 +23,7 @@ from tsr_msgs.msg import RunInfo, SimStatus, TensionCommand, TsrState
 from tsr_msgs.srv import ResetSim
 
 from tsr_sim import dynamics
-from tsr_sim.plant import Plant, PlantConfig, Status
+from tsr_sim.plant import config_from_parameters, Plant, PLANT_PARAMETERS, Status
 from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, LATCHED_QOS,
                             LOOP_PUBLISHER_QOS, run_node)
 from tsr_sim.wire import (CLOCK_TOPIC, RESET_SERVICE, RUN_INFO_TOPIC, run_info_msg,
@@ -36,6 +37,9 @@ class SimNode(Node):
         self.mode = declare(self, 'mode', 'lockstep', 'lockstep or timed')
         if self.mode not in ('lockstep', 'timed'):
             raise ValueError(f"parameter mode must be 'lockstep' or 'timed', got {self.mode!r}")
+        self.plant_name = declare(self, 'plant', 'nominal', 'name of the plant variant (recorded '
+                                  'in the bag; the variant itself is set by the parameters '
+                                  'below, e.g. from config/plants/<name>.yaml)')
         self.plant = Plant(self._plant_config())
         self.scale = self.plant.config.scale
         self.command_timeout = declare(
@@ -88,38 +92,25 @@ class SimNode(Node):
         self.publish_status()
 
     def _plant_config(self):
+        """Declare the plant's parameters (`plant.PLANT_PARAMETERS`, the one declaration)."""
         scale = declare_scale(self)
-        return PlantConfig(
-            initial_state=declare(
-                self, 'initial_state', dynamics.PAPER_INITIAL_STATE.tolist(),
-                'dimensionless [theta, theta\', l-1, l\'] (6 values add beta, beta\': 3-D model)'),
-            step=declare(self, 'step', dynamics.PAPER_STEP, 'sample period h [tau]', 1e-6, 10.0),
-            substeps=declare(self, 'substeps', 10, 'RK4 substeps per sample period', 1, 10000),
-            scale=scale,
-            max_tension=declare(self, 'max_tension',
-                                scale.u_to_tension(dynamics.TENSION_LIMIT),
-                                'largest accepted tension [N] (default: u = '
-                                f'{dynamics.TENSION_LIMIT:g})', 1e-9, 1e9),
-            max_steps=declare(self, 'max_steps', 0, 'stop after this many steps (0: never)',
-                              0, 10**12),
-            process_noise_std=self._noise_std(
-                'process_noise_std', 'dimensionless std per state component, added per step'),
-            sensor_noise_std=self._noise_std(
-                'sensor_noise_std', 'dimensionless std per component of the published state'),
-            seed=declare(self, 'seed', 0, 'noise seed', 0, 2**31 - 1))
+        values = {name: declare(self, name, default, description, low, high)
+                  for name, (default, description, low, high) in PLANT_PARAMETERS.items()}
+        values['max_tension'] = declare(
+            self, 'max_tension', scale.u_to_tension(dynamics.TENSION_LIMIT),
+            f'largest accepted tension [N] (default: u = {dynamics.TENSION_LIMIT:g})', 1e-9, 1e9)
+        return config_from_parameters(values, scale)
 
     def configuration(self):
         """What the bag records about this simulator (RunInfo): the plant and the units."""
         config = self.plant.config
-        return {'mode': self.mode, 'step': config.step, 'substeps': config.substeps,
-                'initial_state': config.initial_state.tolist(), 'scale': scale_dict(self.scale),
-                'max_tension': config.max_tension, 'max_steps': config.max_steps,
+        return {'mode': self.mode, 'plant': self.plant_name, 'step': config.step,
+                'substeps': config.substeps, 'initial_state': config.initial_state.tolist(),
+                'scale': scale_dict(self.scale), 'max_tension': config.max_tension,
+                'max_steps': config.max_steps,
                 'process_noise_std': list(config.process_noise_std),
-                'sensor_noise_std': list(config.sensor_noise_std), 'seed': config.seed}
-
-    def _noise_std(self, name, description):
-        std = declare(self, name, [0.0], description + ' ([0.0]: no noise)')
-        return tuple(std) if any(std) else ()
+                'sensor_noise_std': list(config.sensor_noise_std), 'seed': config.seed,
+                'variant': dataclasses.asdict(config.variant)}
 
     def on_command(self, msg):
         if self.plant.status is not Status.RUNNING:

@@ -1,25 +1,45 @@
-"""A law closed on the dynamics module, ROS-free: what the DDS loop does, step for step."""
+"""A law closed on the simulated plant, ROS-free: what the DDS loop does, step for step.
+
+The plant is the simulator's own (`tsr_sim.plant.Plant`, with its command checks, variants and
+sensor noise), and the state and the command pass through SI units as on the wire, so a law
+deployed here and over DDS in lockstep sees the same numbers.
+"""
 
 import numpy as np
 from tsr_sim import dynamics
+from tsr_sim.plant import config_from_parameters, Plant, Status
+from tsr_sim.units import Scale
 
 from tsr_koopman_ctrl.control.limiter import TensionLimiter
 
 
 def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
-                u_max=dynamics.TENSION_LIMIT):
-    """Run `controller` on the dynamics module: returns states (k+1, n) and tensions (k,), k =
-    steps unless the state would leave the domain: then the loop halts there, as the
-    simulator does, and k < steps."""
+                u_max=dynamics.TENSION_LIMIT, plant=None, scale=None):
+    """Run `controller` from `x0` for `steps` steps: returns the true states (k+1, n) and the
+    commanded tensions (k,), k = steps unless the state would leave the domain: then the loop
+    halts there, as the simulator does, and k < steps.
+
+    `plant`: simulator parameters making the true plant differ from the model (a mapping, e.g.
+    `tsr_sim.plant.plant_parameters('actuator_weak')`, with `mass`, `orbit_rate`,
+    `tether_length` for its units); `scale`: the units the controller converts with (default:
+    the paper's, `Scale()`).
+    """
+    scale = scale or Scale()
+    params = dict(plant or {}, initial_state=[float(v) for v in x0], step=h, substeps=substeps)
+    sim = Plant(config_from_parameters(params, scale))
+    plant_scale = sim.config.scale
     limiter = TensionLimiter(u_max)
     controller.reset()
-    states = [np.asarray(x0, dtype=float)]
-    tensions = []
+    states, tensions = [sim.state.copy()], []
     for _ in range(steps):
-        u = limiter(controller.compute(states[-1]))
-        nxt = dynamics.step(states[-1], u, h, substeps)
-        if not dynamics.in_domain(nxt):
+        measured = scale.state_from_si(plant_scale.state_to_si(sim.measure()))
+        u = limiter(controller.compute(measured))
+        tension = scale.u_to_tension(u)
+        if sim.accept(tension) is not None:
+            raise ValueError(f'the plant refused the clamped tension {tension} N')
+        sim.advance(tension)
+        if sim.status is Status.HALTED_OUT_OF_DOMAIN:
             break
         tensions.append(u)
-        states.append(nxt)
+        states.append(sim.state.copy())
     return np.array(states), np.array(tensions)

@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 from tsr_sim import dynamics
+from tsr_sim.plant import plant_parameters
 
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.control import CONTROLLERS
@@ -41,6 +42,10 @@ def parse_args(argv):
     parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
                         help='a law setting (repeatable), e.g. koopman_mpc.horizon=8, or the '
                         'excitation: excitation.kind=prbs; sequences as a,b,c')
+    parser.add_argument('--plant', default='nominal',
+                        help='plant variant: a name under tsr_sim/config/plants (actuator_weak, '
+                        'actuator_strong, heavy_robot, out_of_plane, eccentric_orbit, '
+                        'noisy_sensors) or a YAML file of simulator parameters')
     parser.add_argument('--steps', type=int, default=2000,
                         help='simulation steps of h = 0.01 tau (paper: 2000)')
     parser.add_argument('--x0', type=float, nargs=4, default=dynamics.PAPER_INITIAL_STATE,
@@ -63,6 +68,10 @@ def parse_args(argv):
         parser.error(str(error))
     if not dynamics.in_domain(np.asarray(args.x0, dtype=float)):
         parser.error(f'--x0 {list(args.x0)} is outside the model domain (finite, l - 1 > -1)')
+    try:
+        args.plant_parameters = plant_parameters(args.plant)
+    except ValueError as error:
+        parser.error(str(error))
     return args
 
 
@@ -103,7 +112,8 @@ def run(args, controller, x0, run_dir, name):
     os.makedirs(run_dir, exist_ok=True)
     domain = args.domain if args.domain is not None else random.randint(120, 219)
     print(f'[deploy] {controller} from x0 = {[float(v) for v in x0]} for {args.steps} steps '
-          f'(tau {args.steps * dynamics.PAPER_STEP:g}) on ROS_DOMAIN_ID {domain}', flush=True)
+          f'(tau {args.steps * dynamics.PAPER_STEP:g}), plant {args.plant}, on ROS_DOMAIN_ID '
+          f'{domain}', flush=True)
 
     def start(package, exe, node, params, console=False):
         log = None if console else os.path.join(run_dir, f'{node}.log')
@@ -117,7 +127,8 @@ def run(args, controller, x0, run_dir, name):
     control = start('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
                     {'controller': controller, 'wait_for_subscribers': 2, **law})
     sim = start('tsr_sim', 'sim_node', 'tsr_sim',
-                {'mode': 'lockstep', 'initial_state': [float(v) for v in x0],
+                {**args.plant_parameters, 'mode': 'lockstep',
+                 'initial_state': [float(v) for v in x0],
                  'max_steps': args.steps, 'exit_on_finish': True, 'wait_for_subscribers': 2,
                  'progress_every': 100}, console=True)
     try:
