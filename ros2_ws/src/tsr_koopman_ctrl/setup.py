@@ -41,6 +41,7 @@ setup(
             'recorder_node = tsr_koopman_ctrl.nodes.recorder_node:main',
             'deploy = tsr_koopman_ctrl.tools.deploy:main',
             'train = tsr_koopman_ctrl.tools.train:main',
+            'retrain = tsr_koopman_ctrl.tools.retrain:main',
             'evaluate = tsr_koopman_ctrl.tools.evaluate:main',
             'mpc_sweep = tsr_koopman_ctrl.tools.mpc_sweep:main',
             'bag = tsr_koopman_ctrl.tools.bag:main',

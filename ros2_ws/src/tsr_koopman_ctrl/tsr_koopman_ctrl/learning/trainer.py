@@ -4,6 +4,12 @@ Each epoch prints the loss terms and the validation 30-step error; the best epoc
 and is the model returned and saved; ``<out>/checkpoint.pt`` after every epoch lets a run
 resume after an interruption. CPU by default, CUDA when present. The command line is
 `tsr_koopman_ctrl.tools.train`.
+
+Fine-tuning: `fit(data, init=tensors)` starts from an existing model's weights and keeps its
+state normalisation. Data-parallel: inside a torch.distributed process group of more than one
+rank (`learning.distributed`), `fit` trains this rank's shard under DistributedDataParallel
+with `batch_size / world size` windows per rank, and only rank 0 prints and writes the
+checkpoint; without one (or with one rank) it is the single-process path, unchanged.
 """
 
 import dataclasses
@@ -16,10 +22,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tsr_koopman_ctrl.learning import deep_koopman, errors
+from tsr_koopman_ctrl.learning import deep_koopman, distributed, errors
 from tsr_koopman_ctrl.model import lifted, model_file
 
 CHECKPOINT = 'checkpoint.pt'
+#: Under DDP rank r shuffles its shard with seed + epoch + r * this (rank 0: as one process).
+RANK_SEED_STRIDE = 1_000_003
 
 
 def pick_device(name=None):
@@ -42,47 +50,102 @@ def predict_states(model, data, device, batch=4096):
     return np.concatenate(parts)
 
 
-def evaluate(model, data, device):
-    return errors.multistep_errors(predict_states(model, data, device), data.x)
+def evaluate(model, data, device, context=None):
+    """multistep_errors of `model` on `data`; with an active `context` (DDP), on the windows of
+    every rank together (each rank passes its own)."""
+    if context is None or not context.active:
+        return errors.multistep_errors(predict_states(model, data, device), data.x)
+    local = (predict_states(model, data, device) if len(data) else data.x, data.x)
+    parts = distributed.gather(local)
+    return errors.multistep_errors(np.concatenate([p for p, _ in parts]),
+                                   np.concatenate([t for _, t in parts]))
 
 
 class Trainer:
-    """fit() a DeepKoopman on a Dataset; keeps the best epoch by validation 30-step error."""
+    """fit() a DeepKoopman on a Dataset; keeps the best epoch by validation 30-step error.
 
-    def __init__(self, config, out_dir=None, device=None, progress=True):
+    `shuffle=False` takes the windows in their order every epoch (batches are consecutive
+    slices): for a data order fixed by the caller, as the DDP equivalence test needs.
+    """
+
+    def __init__(self, config, out_dir=None, device=None, progress=True, shuffle=True):
         self.config = config
         self.out_dir = pathlib.Path(out_dir) if out_dir else None
+        self.context = distributed.current()
+        if self.context.active and device in (None, 'cuda'):
+            device = distributed.device_name(self.context)   # each rank its own GPU
         self.device = pick_device(device)
-        self.progress = progress
+        self.progress = progress and self.context.is_main
+        self.shuffle = shuffle
         self.history = []
 
-    def fit(self, data, resume=False):
-        config = self.config
+    def fit(self, data, resume=False, init=None, validation=None):
+        """Train on `data`; returns the best epoch's model. `init`: tensors of a model to start
+        from (`model_file.load`), normalisation included (fine-tuning); without it a new model
+        normalised on the training states. `validation`: the windows the best epoch is chosen
+        on, instead of a `validation_fraction` split of `data`. Under DDP `data` and
+        `validation` are this rank's shard."""
+        config, context = self.config, self.context
         torch.manual_seed(config.seed)
-        train, val = data.split(1.0 - config.validation_fraction, seed=config.seed)
-        if len(train) == 0 or len(val) == 0:
+        if validation is None:
+            train, val = data.split(1.0 - config.validation_fraction, seed=config.seed)
+        else:
+            train, val = data, validation
+        per_rank = config.batch_size // context.world_size
+        if context.active:
+            sizes = distributed.gather((len(train), len(val)))
+            if config.batch_size % context.world_size:
+                raise ValueError(f'batch size {config.batch_size} does not split evenly over '
+                                 f'{context.world_size} ranks')
+            empty = [rank for rank, (n, _) in enumerate(sizes) if n == 0]
+            if empty or sum(v for _, v in sizes) == 0:
+                raise ValueError(f'too few windows: training windows per rank '
+                                 f'{[n for n, _ in sizes]}, validation '
+                                 f'{sum(v for _, v in sizes)}')
+        elif len(train) == 0 or len(val) == 0:
             raise ValueError(f'{len(data)} trajectories are too few to split off validation')
-        flat = train.x.reshape(-1, train.x.shape[2])
-        model = deep_koopman.DeepKoopman(config, flat.mean(0), flat.std(0) + 1e-8)
+        if init is not None:
+            model = deep_koopman.DeepKoopman.from_numpy(init, config)
+        else:
+            flat = train.x.reshape(-1, train.x.shape[2])
+            mean, std = (distributed.mean_std(flat) if context.active
+                         else (flat.mean(0), flat.std(0)))
+            model = deep_koopman.DeepKoopman(config, mean, std + 1e-8)
         model.to(self.device)
+        objective = distributed.wrap(model, self.device) if context.active else None
         optimiser = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
-        batches = max(1, len(train) // config.batch_size)
+        batches = max(1, len(train) // per_rank)
+        if context.active:
+            batches = max(1, distributed.least(len(train) // per_rank))
         scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
             optimiser, T_max=config.epochs * batches, eta_min=config.final_learning_rate)
         start_epoch, self.best = 0, {'summed_mse': np.inf}
         self.best_tensors = model.to_numpy()
+        if init is not None:
+            # The init is epoch 0: fine-tuning that only makes the validation error worse
+            # returns the init unchanged.
+            model.eval()
+            self.best = {**evaluate(model, val, self.device, context), 'epoch': 0}
+            model.train()
+            if self.progress:
+                print(f"init: val 30-step summed MSE {self.best['summed_mse']:.3e}", flush=True)
         if resume:
             start_epoch = self.restore(model, optimiser, scheduler, batches)
         x, u = to_tensors(train, self.device)
-        generator = torch.Generator().manual_seed(config.seed + start_epoch)
+        generator = torch.Generator().manual_seed(
+            config.seed + start_epoch + RANK_SEED_STRIDE * context.rank)
         for epoch in range(start_epoch, config.epochs):
-            order = torch.randperm(len(x), generator=generator)
+            order = (torch.randperm(len(x), generator=generator) if self.shuffle
+                     else torch.arange(len(x)))
             bar = tqdm(range(batches), desc=f'epoch {epoch + 1}/{config.epochs}',
                        disable=not self.progress, leave=False, file=sys.stdout)
             sums = {}
             for b in bar:
-                index = order[b * config.batch_size:(b + 1) * config.batch_size]
-                loss, parts = deep_koopman.total_loss(model, x[index], u[index])
+                index = order[b * per_rank:(b + 1) * per_rank]
+                if objective is None:
+                    loss, parts = deep_koopman.total_loss(model, x[index], u[index])
+                else:
+                    loss, parts = objective(x[index], u[index])
                 optimiser.zero_grad()
                 loss.backward()
                 optimiser.step()
@@ -90,14 +153,16 @@ class Trainer:
                 for key, value in parts.items():
                     sums[key] = sums.get(key, 0.0) + value
                 bar.set_postfix(loss=f'{loss.item():.4g}')
-            self.end_epoch(epoch, model, val, {k: v / batches for k, v in sums.items()})
+            means = {k: v / batches for k, v in sums.items()}
+            self.end_epoch(epoch, model, val, distributed.average(means, self.device)
+                           if context.active else means)
             self.save_checkpoint(epoch + 1, model, optimiser, scheduler)
         model.load_state_dict({k: torch.as_tensor(v) for k, v in self.best_tensors.items()})
         return model
 
     def end_epoch(self, epoch, model, val, train_losses):
         model.eval()
-        metrics = evaluate(model, val, self.device)
+        metrics = evaluate(model, val, self.device, self.context)
         model.train()
         record = {'epoch': epoch + 1, **train_losses, 'val_summed_mse': metrics['summed_mse']}
         improved = metrics['summed_mse'] < self.best['summed_mse']
@@ -113,7 +178,7 @@ class Trainer:
                   + ('  (best)' if improved else ''), flush=True)
 
     def save_checkpoint(self, epochs_done, model, optimiser, scheduler):
-        if self.out_dir is None:
+        if self.out_dir is None or not self.context.is_main:
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
         state = {'epochs_done': epochs_done, 'model': model.state_dict(),
@@ -158,8 +223,10 @@ def versions():
             'torch': torch.__version__, 'safetensors': safetensors.__version__}
 
 
-def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, command):
-    """Write the model with its test metrics, controllability rank and provenance."""
+def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, command,
+               extra=None):
+    """Write the model with its test metrics, controllability rank and provenance; `extra`:
+    more metadata (a dict merged in). `train_data` needs only `provenance` and len()."""
     test = evaluate(model, test_data, trainer.device)
     tensors = model.to_numpy()
     metadata = {
@@ -171,6 +238,6 @@ def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, 
         'data': {'train': train_data.provenance, 'test': test_data.provenance,
                  'train_trajectories': len(train_data), 'test_trajectories': len(test_data)},
         'training_seconds': round(seconds, 1), 'device': str(trainer.device),
-        'command': command, 'versions': versions()}
+        'command': command, 'versions': versions(), **(extra or {})}
     model_file.save(out_dir, tensors, config, metadata)
     return metadata

@@ -1,0 +1,389 @@
+"""Recorded bags -> training windows, trusting a bag only as far as it can be checked.
+
+    from tsr_koopman_ctrl.learning import recorded
+    bags = recorded.find_bags(['bags/'])             # a bag, one .mcap file, or every bag below
+    windows = recorded.read_windows(bags[0])        # BagWindows: data, provenance, warnings
+    data = windows.data                              # Dataset of 30-step windows
+
+A window is T + 1 consecutive states and the T tensions APPLIED between them: the first
+command on tsr/tension_cmd answering each state (what a lockstep simulator steps with; it
+already holds the controller's excitation), matched to its state by the `step` both carry,
+never by position. States and tensions are converted to the paper's variables with the units
+scale the simulator recorded (RunInfo, through `bag.read_loop`). Windows never span a gap: a
+missing step, a state without a command, a command the simulator refuses (non-finite,
+negative, over its `max_tension`), or a state that is non-finite, outside the domain or
+beyond |x| <= `max_abs_state` (the sampler's runaway bound) ends a gap-free run; each run is
+cut into non-overlapping windows from its start, and what was skipped is counted.
+
+A bag that cannot give trustworthy windows raises `BagDataError`, one line naming the bag:
+empty; no tsr_msgs/msg/TsrState or TensionCommand messages (wrong types); a TsrState or
+TensionCommand definition that differs from the installed one (other fields or units); a
+state step recorded twice with different values (a reset or two simulators: which state a
+command answered is unknown; republished identical states are fine); no simulator RunInfo
+(units and sample period unknown); timed mode (a command is not tied to a step); another
+sample period or state size than asked; no complete window. A crash-truncated or damaged file
+is not an error: the reader keeps what it can recover (`bag.reader`) and a warning line says
+how much; so do lines for skipped gaps and for steps answered by differing commands.
+
+Provenance per bag (in the Dataset and `BagWindows.provenance`): path, sha256 of its .mcap
+files (concatenated in split order, and per file), message counts per topic, windows cut, gap
+counts, the RunInfo (plant, controller, model, excitation) and the units scale.
+"""
+
+import collections
+import dataclasses
+import functools
+import hashlib
+import json
+import math
+import os
+
+import numpy as np
+from tsr_sim import dynamics, wire
+
+from tsr_koopman_ctrl.bag import definitions
+from tsr_koopman_ctrl.bag.reader import bag_files, BagReader, COMPLETE
+from tsr_koopman_ctrl.bag.tsr_loop import read_loop, STATE_TYPE, TENSION_TYPE
+from tsr_koopman_ctrl.learning.dataset import concatenate, Dataset
+
+DEFAULT_STEPS = 30
+#: Same bound as the sampler's (`SamplingConfig.max_abs_state`): states beyond it are runaways.
+MAX_ABS_STATE = 10.0
+#: Types whose definition must match the installed one: the windows are read from them.
+CHECKED_TYPES = (STATE_TYPE, TENSION_TYPE)
+
+
+class BagDataError(ValueError):
+    """A bag that cannot give training data; str() is one line naming the bag."""
+
+    def __init__(self, bag, what):
+        super().__init__(f'{bag}: {what}')
+        self.bag, self.what = str(bag), what
+
+
+@dataclasses.dataclass
+class BagWindows:
+    """The windows of one bag, where they came from, and what was recovered or skipped."""
+
+    path: str
+    data: Dataset                  # its provenance is [provenance]
+    provenance: dict
+    warnings: list
+
+
+def find_bags(paths):
+    """The bags named by `paths`, each once, in order: a bag directory (its .mcap files), one
+    .mcap file, or a directory holding bags anywhere below it (sorted). A directory counts as a
+    bag if it holds .mcap files or a rosbag2 metadata.yaml (then an empty bag is reported as
+    such). Raises BagDataError for a path that names no bag."""
+    found, seen = [], set()
+    for path in paths:
+        path = os.fspath(path)
+        if not os.path.exists(path):
+            raise BagDataError(path, 'no such file or directory')
+        if os.path.isfile(path):
+            if not path.endswith('.mcap'):
+                raise BagDataError(path, 'not a bag (a bag is a directory of .mcap files or '
+                                   'one .mcap file)')
+            bags = [path]
+        else:
+            bags = sorted(directory for directory, _, names in os.walk(path, followlinks=True)
+                          if 'metadata.yaml' in names or any(n.endswith('.mcap') for n in names))
+            if not bags:
+                raise BagDataError(path, 'no bag below it (no .mcap files)')
+        for bag in bags:
+            key = os.path.realpath(bag)
+            if key not in seen:
+                seen.add(key)
+                found.append(bag)
+    return found
+
+
+def content_hash(path):
+    """(sha256 of the bag's .mcap files' bytes concatenated in split order, one entry per file
+    with its own sha256 and size): what identifies the data, whatever the bag is called."""
+    total, files = hashlib.sha256(), []
+    for name in bag_files(path) if os.path.exists(path) else []:
+        digest, size = hashlib.sha256(), 0
+        with open(name, 'rb') as stream:
+            for block in iter(lambda: stream.read(1 << 20), b''):
+                digest.update(block)
+                total.update(block)
+                size += len(block)
+        files.append({'file': os.path.basename(name), 'sha256': digest.hexdigest(),
+                      'bytes': size})
+    return total.hexdigest(), files
+
+
+@functools.lru_cache(maxsize=None)
+def installed_definition(type_name):
+    """The definition this build would record for `type_name` (the ament index's .msg files)."""
+    try:
+        return definitions.message_definition(type_name)
+    except Exception as error:         # package not found, file missing: not the bag's fault
+        raise ValueError(f'cannot check bags: the installed definition of {type_name} is not '
+                         f'found ({type(error).__name__}: {error}); is the workspace sourced?')
+
+
+def _lines(text):
+    return [line.rstrip() for line in text.replace('\r\n', '\n').strip('\n').split('\n')]
+
+
+def check_definition(bag, type_name, text):
+    """Refuse a schema that differs from the installed definition. The comparison is on the
+    text (trailing blanks aside), comments included: they carry the units."""
+    recorded, installed = _lines(text), _lines(installed_definition(type_name))
+    if recorded == installed:
+        return
+    line = next((i for i, (a, b) in enumerate(zip(recorded, installed)) if a != b),
+                min(len(recorded), len(installed)))
+    here = recorded[line] if line < len(recorded) else '<end>'
+    there = installed[line] if line < len(installed) else '<end>'
+    raise BagDataError(bag, f'{type_name} was recorded with another message definition than '
+                       f'the installed one (line {line + 1}: {here!r} in the bag, {there!r} '
+                       'installed)')
+
+
+def _state_values(msg):
+    """Every field of a TsrState but the header, as floats (NaN-aware comparison)."""
+    return np.array([msg.theta, msg.theta_rate, msg.length, msg.length_rate,
+                     float(msg.has_out_of_plane), msg.beta, msg.beta_rate], dtype=float)
+
+
+@dataclasses.dataclass
+class _Topic:
+    """What one state or tension topic holds, keyed by step."""
+
+    first: dict = dataclasses.field(default_factory=dict)    # step -> first value
+    repeats: int = 0               # later messages for a step, identical to the first
+    conflicts: list = dataclasses.field(default_factory=list)   # steps with differing values
+
+
+def scan(bag, reader):
+    """One pass over the bag: message counts per topic, the topic types, and the decoded
+    states and commands of every state and tension topic, their definitions checked first."""
+    from mcap_ros2.decoder import DecoderFactory
+    factory, decoders, checked = DecoderFactory(), {}, {}
+    counts, types = collections.Counter(), {}
+    topics = collections.defaultdict(_Topic)
+    for msg in reader.messages():
+        counts[msg.topic] += 1
+        types.setdefault(msg.topic, set()).add(msg.type)
+        if msg.type not in CHECKED_TYPES:
+            continue
+        schema = reader.schemas[msg.type]
+        if checked.get(msg.type) is not schema:    # every file of a bag has its own schema
+            check_definition(bag, msg.type, schema.data.decode('utf-8', 'replace'))
+            checked[msg.type] = schema
+            decoders[msg.type] = factory.decoder_for('cdr', schema)
+        try:
+            decoded = decoders[msg.type](msg.data)
+        except Exception as error:
+            raise BagDataError(bag, f'message {counts[msg.topic]} on {msg.topic} does not '
+                               f'decode as {msg.type} ({type(error).__name__})')
+        if msg.type == STATE_TYPE:
+            value = _state_values(decoded)
+            same = np.array_equal
+        else:
+            value = float(decoded.tension)
+            same = _same_float
+        topic = topics[msg.topic]
+        if decoded.step not in topic.first:
+            topic.first[decoded.step] = value
+        elif same(topic.first[decoded.step], value, equal_nan=True):
+            topic.repeats += 1
+        else:
+            topic.conflicts.append(decoded.step)
+    return counts, types, topics
+
+
+def _same_float(a, b, equal_nan=True):
+    return a == b or (equal_nan and math.isnan(a) and math.isnan(b))
+
+
+def _namespace(bag, types, namespace):
+    """The loop's namespace, checking that the bag has states and commands of our types."""
+    by_type = collections.defaultdict(set)
+    for topic, names in types.items():
+        for name in names:
+            by_type[name].add(topic)
+    listed = ', '.join(f'{t} [{"/".join(sorted(n))}]' for t, n in sorted(types.items()))
+    for wanted in CHECKED_TYPES:
+        if wanted not in by_type:
+            raise BagDataError(bag, f'wrong types: no {wanted} messages (topics: '
+                               f'{listed or "none"})')
+    states = sorted(by_type[STATE_TYPE])
+    if namespace is None:
+        if len(states) > 1:
+            raise BagDataError(bag, f'holds several loops ({", ".join(states)}): give the '
+                               'namespace')
+        namespace = states[0][:-len(wire.STATE_TOPIC)].rstrip('/') or '/'
+    for topic, wanted in ((wire.STATE_TOPIC, STATE_TYPE), (wire.TENSION_TOPIC, TENSION_TYPE)):
+        name = wire.resolve(topic, namespace)
+        if name not in by_type[wanted]:
+            raise BagDataError(bag, f'wrong types: no {wanted} messages on {name} (topics: '
+                               f'{listed})')
+    return namespace
+
+
+def _json(value):
+    """As a JSON file stores it (RunInfo YAML may hold anything YAML can)."""
+    return json.loads(json.dumps(value, default=str))
+
+
+def _runs(link):
+    """(start, length) of every run of True in a boolean array."""
+    padded = np.r_[False, link, False].astype(np.int8)
+    edges = np.flatnonzero(np.diff(padded))
+    return list(zip(edges[::2].tolist(), (edges[1::2] - edges[::2]).tolist()))
+
+
+def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=None,
+                 max_abs_state=MAX_ABS_STATE):
+    """Cut one bag into `steps`-step windows, with every check (module docstring).
+
+    `h` and `state_dim`, when given, are what the windows must have (the model's); a bag with
+    another sample period or state size is refused. Returns BagWindows; raises BagDataError.
+    """
+    bag = os.fspath(path)
+    if steps < 1:
+        raise ValueError(f'steps must be >= 1, got {steps}')
+    if not os.path.exists(bag):
+        raise BagDataError(bag, 'no such file or directory')
+    try:
+        reader = BagReader(bag)
+    except FileNotFoundError:
+        raise BagDataError(bag, 'empty bag: no .mcap files')
+    except ValueError as error:
+        detail = str(error).split(': ', 1)[-1]
+        raise BagDataError(bag, f'empty bag: no readable message ({detail})')
+    counts, types, topics = scan(bag, reader)
+    namespace = _namespace(bag, types, namespace)
+    state_topic = topics[wire.resolve(wire.STATE_TOPIC, namespace)]
+    tension_topic = topics[wire.resolve(wire.TENSION_TOPIC, namespace)]
+    if state_topic.conflicts:
+        step = state_topic.conflicts[0]
+        raise BagDataError(bag, f'state step {step} recorded twice with different values '
+                           f'({len(state_topic.conflicts)} such steps): the loop was reset or '
+                           'two simulators published, so which state a command answered is '
+                           'unknown')
+    try:
+        loop = read_loop(bag, namespace=namespace)
+    except ValueError as error:
+        raise BagDataError(bag, str(error))
+    simulator = loop.run_info.get('simulator')
+    if not simulator:
+        raise BagDataError(bag, f'no simulator RunInfo on {wire.RUN_INFO_TOPIC}: its units '
+                           'scale and sample period are unknown (recorded before RunInfo '
+                           'existed?)')
+    if simulator.get('mode', 'lockstep') != 'lockstep':
+        raise BagDataError(bag, f"recorded in {simulator.get('mode')} mode: the simulator "
+                           'holds the last command there, so a command is not tied to a step')
+    bag_h = float(simulator.get('step', dynamics.PAPER_STEP))
+    if h is not None and not math.isclose(bag_h, h, rel_tol=1e-9):
+        raise BagDataError(bag, f'sample period h = {bag_h:g} tau; the model needs {h:g}')
+    if state_dim is not None and loop.x.shape[1] != state_dim:
+        raise BagDataError(bag, f'{loop.x.shape[1]}-component states; the model needs '
+                           f'{state_dim}')
+
+    # Nothing silently misaligned: read_loop's states and tensions are the ones scanned,
+    # each tension the first command whose step is its state's step.
+    step = loop.step
+    if step.tolist() != sorted(state_topic.first):
+        raise BagDataError(bag, 'read back inconsistently: the loop\'s steps differ from the '
+                           'recorded states')
+    scale = loop.scale
+    commanded = np.array([s in tension_topic.first for s in step.tolist()])
+    recorded_u = np.array([scale.tension_to_u(tension_topic.first.get(s, math.nan))
+                           for s in step.tolist()])
+    if not np.array_equal(recorded_u, loop.u, equal_nan=True):
+        raise BagDataError(bag, 'read back inconsistently: a tension is not the first command '
+                           'answering its step')
+    max_tension = simulator.get('max_tension')
+    raw = np.array([tension_topic.first.get(s, math.nan) for s in step.tolist()])
+    with np.errstate(invalid='ignore'):
+        accepted = np.isfinite(raw) & (raw >= 0.0)
+        if max_tension is not None:
+            accepted &= raw <= float(max_tension) * (1.0 + 1e-12)
+    x, u = loop.x, loop.u
+    finite = np.isfinite(x).all(axis=1)
+    with np.errstate(invalid='ignore'):
+        state_ok = dynamics.in_domain(x) & np.all(np.abs(x) <= max_abs_state, axis=1)
+    contiguous = np.diff(step) == 1
+    link = contiguous & state_ok[:-1] & state_ok[1:] & accepted[:-1]
+    runs = _runs(link)
+    starts = [start + k * steps for start, length in runs for k in range(length // steps)]
+    xs = np.array([x[s:s + steps + 1] for s in starts]).reshape(-1, steps + 1, x.shape[1])
+    us = np.array([u[s:s + steps] for s in starts]).reshape(-1, steps)
+
+    missing = np.diff(step)[~contiguous] - 1
+    state_steps = set(state_topic.first)
+    gaps = {
+        'states': int(len(step)), 'first_step': int(step[0]), 'last_step': int(step[-1]),
+        'gaps': int(len(missing)), 'missing_steps': int(missing.sum()),
+        'missing_commands': int((~commanded[:-1]).sum()),
+        'refused_commands': int((commanded[:-1] & ~accepted[:-1]).sum()),
+        'non_finite_states': int((~finite).sum()),
+        'out_of_bounds_states': int((finite & ~state_ok).sum()),
+        'orphan_commands': sum(s not in state_steps for s in tension_topic.first),
+        'republished_states': state_topic.repeats,
+        'repeated_commands': tension_topic.repeats,
+        'conflicting_commands': len(tension_topic.conflicts),
+        'runs': len(runs), 'longest_run': max((n for _, n in runs), default=0),
+        'transitions': int(link.sum()), 'windows': len(starts),
+    }
+    skipped = {k: gaps[k] for k in ('missing_steps', 'missing_commands', 'refused_commands',
+                                    'non_finite_states', 'out_of_bounds_states') if gaps[k]}
+    if not starts:
+        what = ', '.join(f'{v} {k.replace("_", " ")}' for k, v in skipped.items())
+        raise BagDataError(bag, f'no complete {steps}-step window: {len(step)} states, longest '
+                           f'gap-free run {gaps["longest_run"]} steps'
+                           + (f' ({what})' if what else ''))
+
+    warnings = []
+    read_report = loop.report or reader.report
+    for file in read_report.files:
+        if file.state != COMPLETE:
+            use = '; its recovered windows are used' if file.messages else '; ignored'
+            warnings.append(f'{bag}: {file.line()}{use}')
+    if skipped:
+        what = ', '.join(f'{v} {k.replace("_", " ")}' for k, v in skipped.items())
+        warnings.append(f'{bag}: gaps skipped ({what}); {len(starts)} windows from '
+                        f'{len(runs)} gap-free runs')
+    if tension_topic.conflicts:
+        warnings.append(f'{bag}: {len(tension_topic.conflicts)} steps answered by different '
+                        'commands: the first (the one a lockstep simulator applies) is used')
+
+    digest, files = content_hash(bag)
+    states_by_file = {f.path: (f.state, f.messages) for f in read_report.files}
+    for entry in files:
+        entry['state'], entry['messages'] = states_by_file.get(entry['file'], ('', 0))
+    controller = loop.run_info.get('controller', {})
+    excitation = np.asarray(loop.excitation if loop.excitation is not None else [])
+    provenance = _json({
+        'source': 'bag', 'path': os.path.abspath(bag), 'sha256': digest, 'files': files,
+        'messages': dict(sorted(counts.items())), 'namespace': namespace, 'steps': steps,
+        'windows': len(starts), 'h': bag_h, 'scale': dataclasses.asdict(scale),
+        'plant': simulator, 'controller': controller.get('controller'),
+        'model': controller.get('model'), 'excitation': controller.get('excitation'),
+        'excited_steps': int(np.count_nonzero(excitation)), 'halted': loop.halted,
+        'recovered': read_report.recovered, 'gaps': gaps, 'run_info': loop.run_info})
+    data = Dataset(xs, us, bag_h, [provenance])
+    return BagWindows(bag, data, provenance, warnings)
+
+
+def read_bags(paths, **options):
+    """read_windows (same options) for every bag: (list of BagWindows, list of BagDataError).
+    Every bad bag is collected, not just the first, so a caller can name them all."""
+    good, bad = [], []
+    for path in paths:
+        try:
+            good.append(read_windows(path, **options))
+        except BagDataError as error:
+            bad.append(error)
+    return good, bad
+
+
+def windows_dataset(bag_windows):
+    """The windows of several bags as one Dataset (their h and state size must agree)."""
+    return concatenate([b.data for b in bag_windows])

@@ -1,0 +1,418 @@
+"""Retrain the deep Koopman model on recorded deployments: ``retrain --bags BAG_OR_DIR ...
+--out models/NAME [--init MODEL]``.
+
+Every bag is checked and cut into T-step windows (`learning.recorded`: the applied tension,
+the bag's own units, no window across a gap). `--init MODEL` fine-tunes that model (its
+weights and its state normalisation; by default 10 epochs at a tenth of its learning rate);
+with `--from-scratch` only its config is used; without `--init`, the default config (or
+`--config-json`) from scratch. `--held-out` bags are whole bags never trained on: the 30-step
+prediction error on their windows (mean, median, diverged fraction) is printed and stored for
+the init model before training and for the new one after, and so is the error on a fresh
+Table-1 test set (did the fine-tuning forget the paper's range?). `--sampled-ratio R` mixes
+R sampled Table-1 trajectories per recorded window into the training data.
+
+A bad bag is one line naming it and what is wrong, and exit status 2 (every bad bag is named,
+not only the first). With `--skip-bad` bad training and held-out bags are skipped with a
+warning line and recorded as skipped in the model's provenance; a bag given both to train and
+to hold out is refused either way. A crash-truncated bag is not bad: a warning says how much
+was recovered, and its recovered windows are used.
+
+The model file holds `save_model`'s metadata plus `retrain`: every bag with the sha256 of its
+.mcap files and its message counts, the init model (path, weights sha256), the errors before
+and after, the sampled mix, the command line and the git commit.
+
+Data-parallel (DistributedDataParallel, `learning.distributed`): the same command under
+``torchrun --nproc_per_node=W -m tsr_koopman_ctrl.tools.retrain ...``. Rank r reads bags r,
+r + W, ... (with fewer bags than ranks every rank reads every bag and takes windows r, r + W,
+...); `--batch-size` is the global batch, B / W windows per rank; gradients are averaged by
+DDP; only rank 0 prints, evaluates the held-out bags and writes the model.
+"""
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import os
+import pathlib
+import shlex
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+
+from tsr_koopman_ctrl.learning import dataset as datasets
+from tsr_koopman_ctrl.learning import distributed, recorded
+from tsr_koopman_ctrl.learning.deep_koopman import DeepKoopman
+from tsr_koopman_ctrl.learning.trainer import evaluate, save_model, Trainer
+from tsr_koopman_ctrl.model import model_file, shipped
+
+FINE_TUNE_EPOCHS = 10
+#: Fine-tuning starts at this fraction of the init's learning rate: a model already fitted
+#: should move, not restart.
+FINE_TUNE_LEARNING_RATE_FACTOR = 0.1
+#: Config keys that change the network or what it computes: a fine-tuned model keeps them.
+TRAINING_KEYS = {'epochs', 'batch_size', 'learning_rate', 'final_learning_rate',
+                 'validation_fraction', 'seed', 'gamma', 'controllability_tol',
+                 'weight_reconstruction', 'weight_lifted', 'weight_controllability',
+                 'weight_equilibrium', 'weight_one_step'}
+
+
+class UsageError(ValueError):
+    """A bad option or combination; one line."""
+
+
+class _Quiet(argparse.ArgumentParser):
+    """Only rank 0 prints an option error (every rank still exits 2)."""
+
+    def error(self, message):
+        if distributed.launched().is_main:
+            self.print_usage(sys.stderr)
+            print(f'{self.prog}: error: {message}', file=sys.stderr)
+        sys.exit(2)
+
+
+def parser():
+    p = _Quiet(prog='retrain', description=__doc__.split('\n\n')[0])
+    p.add_argument('--bags', nargs='+', action='extend', required=True, metavar='BAG_OR_DIR',
+                   help='bags to train on (a directory: every bag below it)')
+    p.add_argument('--out', required=True, help='model directory to write')
+    p.add_argument('--init', metavar='MODEL',
+                   help='model to fine-tune (a directory or a shipped name)')
+    p.add_argument('--from-scratch', action='store_true',
+                   help="with --init: train new weights with the init's config")
+    p.add_argument('--config-json', metavar='JSON_OR_FILE',
+                   help='config overrides (KoopmanConfig fields) as JSON text or a file; '
+                   'with fine-tuning only training settings')
+    p.add_argument('--held-out', nargs='+', action='extend', default=[], metavar='BAG_OR_DIR',
+                   help='bags never trained on, for the error before and after')
+    p.add_argument('--sampled-ratio', type=float, default=0.0, metavar='R',
+                   help='sampled Table-1 trajectories per recorded window to mix in (0)')
+    p.add_argument('--data-seed', type=int, default=0, help='seed of the sampled mix')
+    p.add_argument('--test-trajectories', type=int, default=2000,
+                   help='Table-1 test trajectories for the error before and after (0: none)')
+    p.add_argument('--steps', type=int, default=recorded.DEFAULT_STEPS,
+                   help='steps per window (30)')
+    p.add_argument('--epochs', type=int,
+                   help=f'epochs (fine-tuning: {FINE_TUNE_EPOCHS}; else the config\'s)')
+    p.add_argument('--learning-rate', type=float,
+                   help='initial learning rate (fine-tuning: a tenth of the init\'s)')
+    p.add_argument('--batch-size', type=int, help='global batch (split over the ranks)')
+    p.add_argument('--seed', type=int, help='training seed')
+    p.add_argument('--namespace', help='the loop to read in bags holding several')
+    p.add_argument('--skip-bad', action='store_true',
+                   help='skip bad bags with a warning instead of exit 2')
+    p.add_argument('--device', help='torch device (default: cuda if present, else cpu)')
+    p.add_argument('--threads', type=int, help='torch CPU threads (per rank)')
+    p.add_argument('--quiet', action='store_true', help='no per-epoch lines or progress bars')
+    return p
+
+
+# --------------------------------------------------------------------------- configuration
+
+def _overrides(text):
+    if not text:
+        return {}
+    try:
+        source = text if text.lstrip().startswith('{') else pathlib.Path(text).read_text()
+        values = json.loads(source)
+    except (OSError, ValueError) as error:
+        raise UsageError(f'--config-json: {error}')
+    if not isinstance(values, dict):
+        raise UsageError('--config-json: not a JSON object')
+    return values
+
+
+def configure(args):
+    """(config, init tensors or None, init record or None): the model to train and where from."""
+    init, tensors, base = None, None, model_file.KoopmanConfig()
+    if args.from_scratch and not args.init:
+        raise UsageError('--from-scratch needs --init (without --init training is from scratch)')
+    if args.init:
+        path = shipped.resolve(args.init)
+        tensors, base, _ = model_file.load(path)
+        with open(os.path.join(path, model_file.WEIGHTS_FILE), 'rb') as weights:
+            digest = hashlib.sha256(weights.read()).hexdigest()
+        init = {'given': args.init, 'path': os.path.abspath(path), 'weights_sha256': digest,
+                'fine_tuned': not args.from_scratch}
+        if os.path.realpath(args.out) == os.path.realpath(path):
+            raise UsageError(f'--out {args.out} is the init model: write the new one elsewhere')
+    fine_tune = init is not None and not args.from_scratch
+    values = dataclasses.asdict(base)
+    overrides = _overrides(args.config_json)
+    if fine_tune:
+        fixed = sorted(k for k in overrides if k not in TRAINING_KEYS and overrides[k] != (
+            list(values.get(k)) if isinstance(values.get(k), tuple) else values.get(k)))
+        if fixed:
+            raise UsageError(f'cannot fine-tune with another {", ".join(fixed)} than the init '
+                             'model: use --from-scratch')
+        values['epochs'] = FINE_TUNE_EPOCHS
+        values['learning_rate'] = base.learning_rate * FINE_TUNE_LEARNING_RATE_FACTOR
+    values.update(overrides)
+    for key, value in (('epochs', args.epochs), ('learning_rate', args.learning_rate),
+                       ('batch_size', args.batch_size), ('seed', args.seed)):
+        if value is not None:
+            values[key] = value
+    values['final_learning_rate'] = min(values['final_learning_rate'], values['learning_rate'])
+    try:
+        config = model_file.KoopmanConfig.from_dict(values)
+    except (TypeError, ValueError) as error:
+        raise UsageError(f'bad config: {error}')
+    return config, init, tensors, base
+
+
+# --------------------------------------------------------------------------- data
+
+def _read(paths, options, indices):
+    """read_windows for the bags at `indices`: {index: BagWindows or the error's line}."""
+    results = {}
+    for index in indices:
+        try:
+            results[index] = recorded.read_windows(paths[index], **options)
+        except recorded.BagDataError as error:
+            results[index] = str(error)
+    return results
+
+
+def agree(error):
+    """Raise on every rank if any rank failed (the lowest rank's error), so that no rank is
+    left waiting in a collective for one that stopped."""
+    errors = [e for e in distributed.gather(error) if e]
+    if errors:
+        raise UsageError(errors[0])
+
+
+def _summary(result):
+    """What rank 0 needs to know about a bag another rank read (no arrays)."""
+    if isinstance(result, str):
+        return result
+    return {'provenance': result.provenance, 'warnings': result.warnings}
+
+
+def _check(train_paths, held_paths, train, held, skip_bad):
+    """Lines for bad and duplicated bags; the indices of the usable ones. Raises for a bag
+    held out and trained on (never skipped: the comparison would be meaningless)."""
+    held_hashes = {s['provenance']['sha256']: held_paths[i] for i, s in held.items()
+                   if not isinstance(s, str)}
+    for index, s in train.items():
+        if not isinstance(s, str) and s['provenance']['sha256'] in held_hashes:
+            raise UsageError(f"{train_paths[index]} has the same content as the held-out bag "
+                             f"{held_hashes[s['provenance']['sha256']]}: a bag is trained on or "
+                             'held out, not both')
+    bad, seen = [], {}
+    for kind, paths, results in (('training', train_paths, train),
+                                 ('held-out', held_paths, held)):
+        for index in sorted(results):
+            s = results[index]
+            if isinstance(s, str):
+                bad.append((kind, index, s))
+                continue
+            digest = s['provenance']['sha256']
+            if digest in seen and kind == 'training':
+                bad.append((kind, index, f'{paths[index]}: same content (sha256 {digest[:12]}) '
+                            f'as {seen[digest]}, given twice'))
+            seen.setdefault(digest, paths[index])
+    if bad and not skip_bad:
+        raise UsageError('\n'.join(f'retrain: {line}' for _, _, line in bad)
+                         + f'\nretrain: {len(bad)} bad bags (--skip-bad skips them)')
+    return bad
+
+
+def errors_summary(metrics):
+    return {k: metrics[k] for k in ('summed_mse', 'summed_mse_median', 'diverged_fraction',
+                                    'windows')}
+
+
+def _line(name, metrics):
+    if metrics is None:
+        return f'  {name}: -'
+    return (f"  {name}: mean {metrics['summed_mse']:.4g}, median "
+            f"{metrics['summed_mse_median']:.4g}, diverged {metrics['diverged_fraction']:.1%}")
+
+
+def git_commit():
+    try:
+        done = subprocess.run(['git', 'rev-parse', 'HEAD'], capture_output=True, text=True,
+                              cwd=os.path.dirname(os.path.realpath(__file__)), timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return 'unknown'
+    return done.stdout.strip() if done.returncode == 0 and done.stdout.strip() else 'unknown'
+
+
+class DataSummary:
+    """What save_model records about the training data of every rank."""
+
+    def __init__(self, provenance, count):
+        self.provenance, self.count = provenance, count
+
+    def __len__(self):
+        return self.count
+
+
+# --------------------------------------------------------------------------- the command
+
+def run(args, context, given):
+    say = print if context.is_main else (lambda *a, **k: None)
+    if args.steps < 1 or args.sampled_ratio < 0 or args.test_trajectories < 0:
+        raise UsageError('--steps must be >= 1, --sampled-ratio and --test-trajectories >= 0')
+    config, init, init_tensors, init_config = configure(args)
+    fine_tune = init is not None and init['fine_tuned']
+    if config.batch_size % context.world_size:
+        raise UsageError(f'--batch-size {config.batch_size} does not split evenly over '
+                         f'{context.world_size} ranks')
+    if not args.held_out and not args.test_trajectories:
+        raise UsageError('nothing to test on: give --held-out bags or --test-trajectories > 0')
+    train_paths = recorded.find_bags(args.bags)
+    held_paths = recorded.find_bags(args.held_out) if args.held_out else []
+    held_real = {os.path.realpath(p) for p in held_paths}
+    both = [p for p in train_paths if os.path.realpath(p) in held_real]
+    if both:
+        raise UsageError(f'{", ".join(both)}: given to train on and held out; a bag is one or '
+                         'the other')
+
+    # Each rank reads its shard (rank 0 the held-out bags too); what they found is gathered so
+    # that every rank takes the same decisions (stop, skip) from the same facts.
+    options = {'steps': args.steps, 'namespace': args.namespace, 'h': config.h,
+               'state_dim': config.state_dim}
+    by_bags = len(train_paths) >= context.world_size
+    mine = (distributed.shard(list(range(len(train_paths))), context) if by_bags
+            else list(range(len(train_paths))))
+    local, local_held, failed = {}, {}, None
+    try:
+        local = _read(train_paths, options, mine)
+        if context.is_main:
+            local_held = _read(held_paths, options, range(len(held_paths)))
+    except ValueError as error:        # not a bag's fault (the installed definitions)
+        failed = str(error)
+    agree(failed)
+    gathered = distributed.gather(({i: _summary(r) for i, r in local.items()},
+                                   {i: _summary(r) for i, r in local_held.items()}))
+    train, held = {}, {}
+    for part_train, part_held in gathered:
+        train.update(part_train)
+        held.update(part_held)
+    bad = _check(train_paths, held_paths, train, held, args.skip_bad)
+    skipped = {(kind, index) for kind, index, _ in bad}
+    for index in sorted(train):
+        s = train[index]
+        if ('training', index) not in skipped:
+            for warning in s['warnings']:
+                say(f'retrain: warning: {warning}', file=sys.stderr)
+            say(f"{train_paths[index]}: {s['provenance']['windows']} windows", flush=True)
+    for kind, index, line in bad:
+        say(f'retrain: warning: skipped {kind} bag: {line}', file=sys.stderr)
+    used = [i for i in sorted(train) if ('training', i) not in skipped]
+    if not used:
+        raise UsageError('no usable training bag')
+
+    parts = [local[i].data for i in sorted(local) if ('training', i) not in skipped]
+    data = datasets.concatenate(parts) if parts else None
+    if data is not None and not by_bags:
+        data = data.subset(np.arange(context.rank, len(data), context.world_size))
+    agree(None if data is not None and len(data) else
+          f'rank {context.rank} has no usable bag (bags are shared out one by one over the '
+          'ranks: use fewer ranks)')
+    recorded_windows = len(data)
+    sampled = None
+    if args.sampled_ratio > 0:
+        count = int(round(args.sampled_ratio * len(data)))
+        if count:
+            sampled, _ = datasets.sample(datasets.SamplingConfig(
+                trajectories=count, steps=args.steps, h=config.h,
+                seed=args.data_seed + context.rank))
+            data = datasets.concatenate([data, sampled])
+    counts = distributed.gather((recorded_windows, sampled.provenance if sampled else []))
+    total_recorded = sum(n for n, _ in counts)
+    sampled_provenance = [dict(p, ratio=args.sampled_ratio) for _, ps in counts for p in ps]
+    total_sampled = sum(p['kept'] for p in sampled_provenance)
+    say(f'training on {total_recorded} recorded windows from {len(used)} bags'
+        + (f' and {total_sampled} sampled Table-1 trajectories (ratio {args.sampled_ratio:g})'
+           if sampled_provenance else '')
+        + (f', {context.world_size} ranks sharing out {"bags" if by_bags else "windows"}'
+           if context.active else ''), flush=True)
+
+    trainer = Trainer(config, device=args.device, progress=not args.quiet)
+    tests, before = {}, {}
+    if context.is_main:
+        held_parts = [local_held[i].data for i in sorted(local_held)
+                      if not isinstance(local_held[i], str) and ('held-out', i) not in skipped]
+        if held_parts:
+            tests['held_out'] = datasets.concatenate(held_parts)
+        elif args.held_out:
+            say('retrain: warning: no usable held-out bag', file=sys.stderr)
+        else:
+            say('retrain: warning: no --held-out bags: no error on recorded data the model '
+                'never saw', file=sys.stderr)
+        if args.test_trajectories:
+            tests['table1'], _ = datasets.sample(datasets.SamplingConfig(
+                trajectories=args.test_trajectories, steps=args.steps, h=config.h,
+                seed=datasets.TEST_SEED))
+        before = {name: None for name in tests}
+        if init is not None:
+            net = DeepKoopman.from_numpy(init_tensors, init_config).to(trainer.device).eval()
+            before = {name: errors_summary(evaluate(net, d, trainer.device))
+                      for name, d in tests.items()}
+        for name, d in tests.items():
+            say(f'{name} {args.steps}-step summed MSE before ({len(d)} windows):')
+            say(_line(f'init {args.init}', before[name]) if init else '  (no init model)',
+                flush=True)
+
+    began = time.perf_counter()
+    model = trainer.fit(data, init=init_tensors if fine_tune else None)
+    seconds = time.perf_counter() - began
+    if not context.is_main:
+        return 0
+
+    after = {name: errors_summary(evaluate(model, d, trainer.device))
+             for name, d in tests.items()}
+    for name in tests:
+        say(f'{name} {args.steps}-step summed MSE, before -> after:')
+        say(_line(f'init {args.init}' if init else 'init (none)', before[name]))
+        say(_line(f'new  {args.out}', after[name]))
+    command = 'retrain ' + ' '.join(shlex.quote(a) for a in given)
+    bag_provenance = [train[i]['provenance'] for i in used]
+    retrain = {
+        'bags': [{k: p[k] for k in ('path', 'sha256', 'files', 'messages', 'windows')}
+                 for p in bag_provenance],
+        'held_out': [held[i]['provenance'] for i in sorted(held)
+                     if not isinstance(held[i], str) and ('held-out', i) not in skipped],
+        'skipped': [{'kind': kind, 'bag': (train_paths if kind == 'training' else held_paths)[i],
+                     'error': line} for kind, i, line in bad],
+        'init': init, 'steps': args.steps, 'recorded_windows': total_recorded,
+        'sampled_ratio': args.sampled_ratio, 'sampled_trajectories': total_sampled,
+        'errors_before': before, 'errors_after': after,
+        'world_size': context.world_size, 'sharding': 'bags' if by_bags else 'windows',
+        'per_rank_batch': config.batch_size // context.world_size,
+        'git_commit': git_commit(), 'command': command}
+    summary = DataSummary(bag_provenance + sampled_provenance,
+                          total_recorded + total_sampled)
+    test_data = tests.get('held_out', tests.get('table1'))
+    save_model(args.out, model, config, trainer, summary, test_data, seconds, command,
+               extra={'retrain': retrain})
+    kept = (' (no epoch lowered the validation error: the init\'s weights)'
+            if trainer.best['epoch'] == 0 else '')
+    say(f"saved {args.out}: best epoch {trainer.best['epoch']}{kept}, {seconds:.0f} s")
+    return 0
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    context = distributed.start('gloo' if args.device == 'cpu' else None)
+    given = sys.argv[1:] if argv is None else list(argv)
+    try:
+        return run(args, context, given)
+    except ValueError as error:        # BagDataError, UsageError, ModelFileError, the trainer's
+        if context.is_main:
+            text = str(error)
+            print(text if text.startswith('retrain: ') else f'retrain: {text}',
+                  file=sys.stderr)
+        return 2
+    finally:
+        distributed.stop()
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,284 @@
+"""Bags -> training windows: what a good bag gives, and one clear line for each bad one.
+
+Bags are written here without ROS: `BagWriter` with the installed definitions and CDR from the
+independent rosbags serializer, laid out as the recorder lays out a lockstep loop (the run
+information first, then per step the state, its command and its excitation)."""
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+from rosbags.typesys import get_types_from_msg, get_typestore, Stores
+from tsr_sim import dynamics
+from tsr_sim.units import Scale
+import yaml
+
+from conftest import ROOT
+
+from tsr_koopman_ctrl import bag
+from tsr_koopman_ctrl.bag import definitions
+from tsr_koopman_ctrl.learning import recorded
+
+MSG_DIR = ROOT / 'ros2_ws' / 'src' / 'tsr_msgs' / 'msg'
+TSR_TYPES = ('TsrState', 'TensionCommand', 'RunInfo', 'Excitation')
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+for _name in TSR_TYPES:
+    TYPESTORE.register(get_types_from_msg((MSG_DIR / f'{_name}.msg').read_text(),
+                                          f'tsr_msgs/msg/{_name}'))
+QOS = [definitions.qos_dict(1, 10, 1, 2, 1, None, None, None)]
+#: Not the paper's: the windows must come out in the bag's own units.
+SCALE = Scale(orbit_rate=1.0e-3, tether_length=50.0e3, mass=35.0)
+H = dynamics.PAPER_STEP
+
+
+def topic(name, type_name, definition=None):
+    return bag.TopicInfo(name, type_name, definition or definitions.message_definition(type_name),
+                         definitions.type_hash(type_name), QOS)
+
+
+def _cdr(type_name, **fields):
+    return bytes(TYPESTORE.serialize_cdr(TYPESTORE.types[type_name](**fields), type_name))
+
+
+def _header(seconds):
+    time = TYPESTORE.types['builtin_interfaces/msg/Time']
+    sec = math.floor(seconds)
+    return TYPESTORE.types['std_msgs/msg/Header'](
+        stamp=time(sec=sec, nanosec=int(round((seconds - sec) * 1e9)) % 10 ** 9), frame_id='')
+
+
+def state_cdr(x, step, scale=SCALE):
+    si = scale.state_to_si(np.asarray(x, dtype=float))
+    return _cdr('tsr_msgs/msg/TsrState', header=_header(scale.tau_to_seconds(step * H)),
+                step=int(step), theta=si[0], theta_rate=si[1], length=si[2], length_rate=si[3],
+                has_out_of_plane=False, beta=0.0, beta_rate=0.0)
+
+
+def tension_cdr(u, step, scale=SCALE, type_name='tsr_msgs/msg/TensionCommand'):
+    return _cdr(type_name, header=_header(0.0), step=int(step),
+                tension=float(scale.u_to_tension(u)))
+
+
+def run_info_cdr(role, configuration):
+    return _cdr('tsr_msgs/msg/RunInfo', header=_header(0.0), node=f'/{role}', role=role,
+                configuration=yaml.safe_dump(configuration, sort_keys=False))
+
+
+def simulator_info(scale=SCALE, **changes):
+    return {'mode': 'lockstep', 'step': H, 'substeps': 10, 'initial_state': [0, 0, -0.99, 0.5],
+            'scale': {'orbit_rate': scale.orbit_rate, 'tether_length': scale.tether_length,
+                      'mass': scale.mass},
+            'max_tension': scale.u_to_tension(dynamics.TENSION_LIMIT), 'max_steps': 0,
+            'process_noise_std': [], 'sensor_noise_std': [], 'seed': 0, **changes}
+
+
+def controller_info(scale=SCALE):
+    return {'controller': 'linear_lqr', 'settings': {'r': 1.0},
+            'scale': {'orbit_rate': scale.orbit_rate, 'tether_length': scale.tether_length,
+                      'mass': scale.mass},
+            'excitation': {'kind': 'prbs', 'amplitude': 0.3, 'hold': 5, 'seed': 0}}
+
+
+def loop_data(n, seed=0):
+    """n states and the applied tensions (law + excitation) of a made-up, plausible loop."""
+    rng = np.random.default_rng(seed)
+    x = np.column_stack([rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n),
+                         rng.uniform(-0.9, 0.1, n), rng.uniform(-0.5, 0.5, n)])
+    law = rng.uniform(1.0, 4.0, n)
+    excitation = np.where((np.arange(n) // 5) % 2 == 0, 0.3, -0.3)
+    return x, law + excitation, excitation
+
+
+def write_loop(directory, x, u, steps=None, excitation=None, simulator=None, scale=SCALE,
+               run_info=True, state_definition=None, after=(), chunk_size=1 << 20):
+    """A lockstep loop as the recorder stores it; u[i] NaN: no command for state i. `after`:
+    extra (topic, cdr) messages at the end (republished states, stray commands)."""
+    steps = np.arange(len(x)) if steps is None else np.asarray(steps)
+    with bag.BagWriter(str(directory), chunk_size=chunk_size) as writer:
+        writer.add_topic(topic('/tsr/run_info', 'tsr_msgs/msg/RunInfo'))
+        writer.add_topic(topic('/tsr/state', 'tsr_msgs/msg/TsrState', state_definition))
+        writer.add_topic(topic('/tsr/tension_cmd', 'tsr_msgs/msg/TensionCommand'))
+        writer.add_topic(topic('/tsr/excitation', 'tsr_msgs/msg/Excitation'))
+        time = [0]
+
+        def write(name, data):
+            time[0] += 1000
+            writer.write(name, data, log_time_ns=time[0])
+
+        if run_info:
+            write('/tsr/run_info', run_info_cdr('simulator', simulator or simulator_info(scale)))
+            write('/tsr/run_info', run_info_cdr('controller', controller_info(scale)))
+        for i, step in enumerate(steps):
+            write('/tsr/state', state_cdr(x[i], step, scale))
+            if not np.isnan(u[i]):
+                write('/tsr/tension_cmd', tension_cdr(u[i], step, scale))
+                if excitation is not None:
+                    write('/tsr/excitation', tension_cdr(excitation[i], step, scale,
+                                                         'tsr_msgs/msg/Excitation'))
+        for name, data in after:
+            write(name, data)
+    return directory
+
+
+@pytest.fixture(scope='module')
+def good_bag(tmp_path_factory):
+    x, u, excitation = loop_data(95)
+    path = write_loop(tmp_path_factory.mktemp('bags') / 'good', x, u, excitation=excitation)
+    return path, x, u, excitation
+
+
+# --------------------------------------------------------------------------- a good bag
+
+def test_windows_of_a_good_bag_are_the_states_and_applied_tensions_written(good_bag):
+    path, x, u, excitation = good_bag
+    windows = recorded.read_windows(path, steps=30, h=H, state_dim=4)
+    data = windows.data
+    assert len(data) == 3 and data.steps == 30 and data.h == H      # 95 states: 3 windows
+    for k in range(3):
+        np.testing.assert_allclose(data.x[k], x[30 * k:30 * k + 31], rtol=0, atol=1e-12)
+        # The applied command (law + excitation), in the bag's own units, not the paper's.
+        np.testing.assert_allclose(data.u[k], u[30 * k:30 * k + 30], rtol=0, atol=1e-12)
+    assert not np.allclose(data.u[0], (u - excitation)[:30])
+    paper = Scale().tension_to_u(SCALE.u_to_tension(u[:30]))
+    assert not np.allclose(data.u[0], paper)
+    assert windows.warnings == []
+    prov = windows.provenance
+    files = sorted(path.glob('*.mcap'))
+    assert prov['sha256'] == hashlib.sha256(b''.join(f.read_bytes() for f in files)).hexdigest()
+    assert prov['files'][0]['sha256'] == hashlib.sha256(files[0].read_bytes()).hexdigest()
+    assert prov['messages'] == {'/tsr/excitation': 95, '/tsr/run_info': 2,
+                                '/tsr/state': 95, '/tsr/tension_cmd': 95}
+    assert prov['windows'] == 3 and prov['scale'] == {'orbit_rate': 1.0e-3,
+                                                      'tether_length': 50.0e3, 'mass': 35.0}
+    assert prov['controller'] == 'linear_lqr' and prov['plant']['mode'] == 'lockstep'
+    assert prov['excitation']['kind'] == 'prbs' and prov['excited_steps'] == 95
+    assert prov['gaps']['missing_steps'] == 0 and prov['gaps']['transitions'] == 94
+    assert data.provenance == [prov]
+
+
+def test_republished_identical_states_are_fine(tmp_path):
+    x, u, _ = loop_data(40)
+    path = write_loop(tmp_path / 'b', x, u, after=[('/tsr/state', state_cdr(x[10], 10))])
+    windows = recorded.read_windows(path, steps=30)
+    assert len(windows.data) == 1 and windows.provenance['gaps']['republished_states'] == 1
+
+
+def test_gaps_are_skipped_and_counted(tmp_path):
+    x, u, _ = loop_data(140, seed=1)
+    u[75] = np.nan                                     # state 75 has no command
+    u[100] = -1.0                                      # a command the simulator refuses
+    x[120, 1] = np.nan                                 # a non-finite state
+    steps = np.r_[np.arange(0, 40), np.arange(45, 145)]   # steps 40..44 missing
+    windows = recorded.read_windows(write_loop(tmp_path / 'b', x, u, steps=steps), steps=10)
+    gaps = windows.provenance['gaps']
+    assert (gaps['missing_steps'], gaps['gaps'], gaps['missing_commands'],
+            gaps['refused_commands'], gaps['non_finite_states']) == (5, 1, 1, 1, 1)
+    # Gap-free runs (state indices): 0-39 (39 transitions), 40-75, 76-100, 101-119, 121-139.
+    assert gaps['runs'] == 5 and len(windows.data) == 3 + 3 + 2 + 1 + 1
+    np.testing.assert_allclose(windows.data.x[3], x[40:51], atol=1e-12)   # a run's start
+    np.testing.assert_allclose(windows.data.u[3], u[40:50], atol=1e-12)
+    for window in windows.data.u:
+        assert np.all(window >= 0)
+    assert len(windows.warnings) == 1
+    assert ('5 missing steps, 1 missing commands, 1 refused commands, 1 non finite states'
+            in windows.warnings[0])
+
+
+def test_truncated_bag_is_recovered_with_a_warning(tmp_path):
+    x, u, excitation = loop_data(600, seed=2)
+    path = write_loop(tmp_path / 'b', x, u, excitation=excitation, chunk_size=4000)
+    full = recorded.read_windows(path, steps=30)
+    mcap = path / 'b_0.mcap'
+    mcap.write_bytes(mcap.read_bytes()[:mcap.stat().st_size // 2])   # what a kill leaves
+    windows = recorded.read_windows(path, steps=30)
+    assert 0 < len(windows.data) < len(full.data)
+    np.testing.assert_array_equal(windows.data.x, full.data.x[:len(windows.data)])
+    assert len(windows.warnings) == 1
+    assert windows.warnings[0].startswith(f'{path}: b_0.mcap: truncated: ')
+    assert 'messages recovered' in windows.warnings[0]
+    assert windows.provenance['recovered'] and windows.provenance['files'][0]['state'] == \
+        'truncated'
+
+
+# --------------------------------------------------------------------------- bad bags
+
+def bad(path, match, **options):
+    with pytest.raises(recorded.BagDataError, match=match) as caught:
+        recorded.read_windows(path, **options)
+    message = str(caught.value)
+    assert message.startswith(f'{path}: ') and '\n' not in message
+    return message
+
+
+def test_an_empty_bag(tmp_path):
+    (tmp_path / 'b').mkdir()
+    (tmp_path / 'b' / 'b_0.mcap').write_bytes(b'')
+    bad(tmp_path / 'b', 'empty bag: no readable message')
+    (tmp_path / 'c').mkdir()
+    (tmp_path / 'c' / 'metadata.yaml').write_text('rosbag2_bagfile_information: {}\n')
+    bad(tmp_path / 'c', 'empty bag: no .mcap files')
+
+
+def test_a_bag_of_other_types(tmp_path):
+    type_name = 'std_msgs/msg/String'
+    with bag.BagWriter(str(tmp_path / 'b')) as writer:
+        writer.add_topic(topic('/tsr/state', type_name))
+        writer.add_topic(topic('/tsr/tension_cmd', 'tsr_msgs/msg/TensionCommand'))
+        writer.write('/tsr/state', _cdr(type_name, data='hello'), 1)
+        writer.write('/tsr/tension_cmd', tension_cdr(3.0, 0), 2)
+    bad(tmp_path / 'b', r'wrong types: no tsr_msgs/msg/TsrState messages \(topics: /tsr/state '
+        r'\[std_msgs/msg/String\]')
+    x, u, _ = loop_data(40)
+    u[:] = np.nan
+    bad(write_loop(tmp_path / 'c', x, u), 'wrong types: no tsr_msgs/msg/TensionCommand')
+
+
+def test_another_message_definition(tmp_path):
+    x, u, _ = loop_data(40)
+    installed = definitions.message_definition('tsr_msgs/msg/TsrState')
+    changed = installed.replace('deployed tether length [m]', 'deployed tether length [km]')
+    assert changed != installed
+    message = bad(write_loop(tmp_path / 'b', x, u, state_definition=changed),
+                  'TsrState was recorded with another message definition')
+    assert '[km]' in message
+
+
+def test_duplicate_steps_with_different_states(tmp_path):
+    x, u, _ = loop_data(40)
+    other = x[10] + 0.01
+    bad(write_loop(tmp_path / 'b', x, u, after=[('/tsr/state', state_cdr(other, 10))]),
+        'state step 10 recorded twice with different values')
+
+
+def test_no_complete_window(tmp_path):
+    x, u, _ = loop_data(60)
+    u[29] = np.nan                                     # runs of 29 transitions each side
+    bad(write_loop(tmp_path / 'b', x, u), r'no complete 30-step window: 60 states, longest '
+        r'gap-free run 29 steps \(1 missing commands\)')
+
+
+def test_units_and_sample_period_must_be_known_and_match(tmp_path):
+    x, u, _ = loop_data(40)
+    bad(write_loop(tmp_path / 'a', x, u, run_info=False), 'no simulator RunInfo')
+    bad(write_loop(tmp_path / 'b', x, u, simulator=simulator_info(mode='timed')),
+        'recorded in timed mode')
+    bad(write_loop(tmp_path / 'c', x, u, simulator=simulator_info(step=0.02)), 'h = 0.02 tau',
+        h=H)
+    bad(write_loop(tmp_path / 'd', x, u), '4-component states; the model needs 6',
+        state_dim=6)
+
+
+def test_find_bags_walks_directories_and_reads_each_bag_once(good_bag, tmp_path):
+    path = good_bag[0]
+    x, u, _ = loop_data(40)
+    nested = write_loop(tmp_path / 'runs' / 'day1' / 'b1', x, u)
+    write_loop(tmp_path / 'runs' / 'b0', x, u)
+    assert recorded.find_bags([tmp_path / 'runs', nested, path]) == [
+        str(tmp_path / 'runs' / 'b0'), str(nested), str(path)]
+    (tmp_path / 'empty_dir').mkdir()
+    with pytest.raises(recorded.BagDataError, match='no bag below it'):
+        recorded.find_bags([tmp_path / 'empty_dir'])
+    good, errors = recorded.read_bags([path, tmp_path / 'missing'], steps=30)
+    assert len(good) == 1 and len(errors) == 1
+    assert str(errors[0]) == f'{tmp_path / "missing"}: no such file or directory'
