@@ -9,7 +9,7 @@ from rosbags.typesys import get_typestore, Stores
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.bag import read_loop
-from tsr_koopman_ctrl.control import closed_loop, KoopmanMpc, LinearisedLqr
+from tsr_koopman_ctrl.control import closed_loop, LinearisedLqr, make_controller
 from tsr_koopman_ctrl.evaluation import settle_index
 from tsr_koopman_ctrl.tools import deploy
 
@@ -30,7 +30,8 @@ def test_deployment_over_dds_matches_the_ros_free_loop_and_leaves_a_bag(tmp_path
     assert not loop.report.recovered
     assert loop.step.tolist() == list(range(steps + 1))
     # Lockstep makes the DDS loop step-identical to the ROS-free one.
-    want_x, want_u = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, steps)
+    want_x, want_u = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE,
+                                 steps)
     np.testing.assert_allclose(loop.x, want_x, atol=1e-9)
     np.testing.assert_allclose(loop.u[:steps], want_u, atol=1e-9)
     # The controller's status of every answered state is in the bag, with its compute time.
@@ -57,7 +58,8 @@ def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(tmp
     assert deploy.main(deploy_args(tmp_path, domain_id, '--steps', str(steps))) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
     loop = read_loop(str(bag_path))
-    want_x, want_u = closed_loop(KoopmanMpc(), dynamics.PAPER_INITIAL_STATE, steps)
+    want_x, want_u = closed_loop(make_controller('koopman_mpc'), dynamics.PAPER_INITIAL_STATE,
+                                 steps)
     np.testing.assert_allclose(loop.x, want_x, atol=1e-7)
     np.testing.assert_allclose(loop.u[:steps], want_u, atol=1e-7)
     assert settle_index(loop.x) is not None
@@ -107,6 +109,7 @@ def test_excitation_and_run_info_are_recorded(tmp_path, domain_id):
     steps = 200
     assert deploy.main(deploy_args(tmp_path, domain_id, '--controller', 'linear_lqr',
                                    '--steps', str(steps), '--set', 'excitation.kind=prbs',
+                                   '--set', 'observer.disturbance=none',
                                    '--set', 'excitation.amplitude=0.5',
                                    '--set', 'excitation.seed=3')) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
@@ -133,9 +136,10 @@ def test_a_plant_variant_over_dds_is_the_ros_free_one(tmp_path, domain_id):
     loop = read_loop(str(bag_path))
     assert loop.run_info['simulator']['plant'] == 'actuator_weak'
     assert loop.run_info['simulator']['variant']['actuator_gain'] == 0.9
-    want_x, want_u = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, steps,
-                                 plant=plant_parameters('actuator_weak'))
+    want_x, want_u = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE,
+                                 steps, plant=plant_parameters('actuator_weak'))
     np.testing.assert_allclose(loop.x, want_x, atol=1e-9)
     np.testing.assert_allclose(loop.u[:steps], want_u, atol=1e-9)
-    nominal_x, _ = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, steps)
+    nominal_x, _ = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE,
+                               steps)
     assert np.abs(nominal_x - want_x).max() > 1e-3     # the variant does change the run

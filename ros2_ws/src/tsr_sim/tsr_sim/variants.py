@@ -76,12 +76,15 @@ def augmented_derivative(variant, state, command):
         actuator, actuator_rate = command, 0.0
     u = applied_tension(variant, actuator)
     e = variant.eccentricity
-    if x.size != dynamics.PLANAR_DIM or e == 0.0:
+    if x.size != dynamics.PLANAR_DIM:
         return np.r_[dynamics.derivative(x, u), actuator_rate, 1.0]
-    one_e = 1.0 + e * math.cos(anomaly)
-    anomaly_rate = one_e ** 2 / (1.0 - e * e) ** 1.5
-    k = one_e ** 3 / (1.0 - e * e) ** 3
-    anomaly_acc = -2.0 * e * math.sin(anomaly) * k
+    if e == 0.0:   # the nominal equations (in scalars: this runs 40 times a step)
+        anomaly_rate, k, anomaly_acc = 1.0, 1.0, 0.0
+    else:
+        one_e = 1.0 + e * math.cos(anomaly)
+        anomaly_rate = one_e ** 2 / (1.0 - e * e) ** 1.5
+        k = one_e ** 3 / (1.0 - e * e) ** 3
+        anomaly_acc = -2.0 * e * math.sin(anomaly) * k
     theta, theta_rate, length_rate = x[0], x[1], x[3]
     length = x[2] + 1.0
     w = anomaly_rate + theta_rate

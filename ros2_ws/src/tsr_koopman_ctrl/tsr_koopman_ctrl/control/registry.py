@@ -4,6 +4,7 @@ from tsr_koopman_ctrl.control.fractional_pd import FractionalOrderPd
 from tsr_koopman_ctrl.control.koopman_lqr import KoopmanLqr
 from tsr_koopman_ctrl.control.koopman_mpc import KoopmanMpc
 from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr
+from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
 
 CONTROLLERS = {law.name: law
                for law in (LinearisedLqr, FractionalOrderPd, KoopmanLqr, KoopmanMpc)}
@@ -16,7 +17,13 @@ def law_class(name):
         raise ValueError(f'unknown controller {name!r}; choose from {sorted(CONTROLLERS)}')
 
 
-def make_controller(name, settings=None, **overrides):
+def make_controller(name, settings=None, observer=None, **overrides):
     """Build the law `name`: its settings (an instance of its Settings class, or the defaults)
-    with `overrides` (settings fields, or the loop's h and u_max) applied."""
-    return law_class(name)(settings, **overrides)
+    with `overrides` (settings fields, or the loop's h and u_max) applied, wrapped for
+    offset-free control unless `observer` (ObserverSettings, a dict of them, or the defaults)
+    says disturbance 'none'."""
+    law = law_class(name)(settings, **overrides)
+    if isinstance(observer, dict):
+        observer = ObserverSettings(**observer)
+    observer = observer or ObserverSettings()
+    return law if observer.disturbance == 'none' else OffsetFree(law, observer)

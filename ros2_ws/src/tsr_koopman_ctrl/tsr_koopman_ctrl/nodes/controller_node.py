@@ -33,6 +33,7 @@ from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, RUN_INFO_TO
 from tsr_koopman_ctrl.control import CONTROLLERS, make_controller, TensionLimiter
 from tsr_koopman_ctrl.control.excitation import Excitation as ExcitationSource
 from tsr_koopman_ctrl.control.excitation import ExcitationSettings
+from tsr_koopman_ctrl.control.offset_free import ObserverSettings
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import fields
 from tsr_koopman_ctrl.model.model_file import WEIGHTS_FILE
@@ -67,7 +68,10 @@ class ControllerNode(Node):
                               f'output clamp [N] (default: u = {dynamics.TENSION_LIMIT:g})',
                               1e-9, 1e9)
         self.limiter = TensionLimiter(self.scale.tension_to_u(max_tension))
-        self.controller = make_controller(self.law_name, settings, u_max=self.limiter.u_max)
+        self.observer_settings = ObserverSettings(**declare_law_settings(
+            self, ObserverSettings, 'observer'))
+        self.controller = make_controller(self.law_name, settings, self.observer_settings,
+                                          u_max=self.limiter.u_max)
         self.excitation = ExcitationSource(ExcitationSettings(**declare_law_settings(
             self, ExcitationSettings, 'excitation')))
         self.safe_tension = declare(
@@ -129,7 +133,10 @@ class ControllerNode(Node):
             excitation = Excitation(step=msg.step, tension=self.scale.u_to_tension(added))
             excitation.header.stamp = stamp
             self.excitation_pub.publish(excitation)
-        tension = self.scale.u_to_tension(self.limiter(u))
+        u = self.limiter(u)
+        if hasattr(self.controller, 'applied'):   # the observer must know what was sent
+            self.controller.applied(u)
+        tension = self.scale.u_to_tension(u)
         self.pub.publish(tension_msg(tension, msg.step, stamp))
         self.counts['commands'] += 1
         status = (ControllerStatus.SOLVER_FALLBACK if self.controller.fallbacks > fallbacks
@@ -146,6 +153,7 @@ class ControllerNode(Node):
                                for k, v in dataclasses.asdict(settings).items()},
                   'scale': scale_dict(self.scale),
                   'max_tension': self.scale.u_to_tension(self.limiter.u_max),
+                  'observer': dict(dataclasses.asdict(self.observer_settings)),
                   'excitation': dict(dataclasses.asdict(self.excitation.settings))}
         if model is not None and model.path:
             with open(os.path.join(model.path, WEIGHTS_FILE), 'rb') as weights:

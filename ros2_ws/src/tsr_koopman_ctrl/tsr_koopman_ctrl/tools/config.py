@@ -9,13 +9,15 @@ import sys
 
 from tsr_koopman_ctrl.control import CONTROLLERS
 from tsr_koopman_ctrl.control.excitation import ExcitationSettings
+from tsr_koopman_ctrl.control.offset_free import ObserverSettings
 from tsr_koopman_ctrl.control.settings import fields
 
 HEADER = """\
 # Example parameters for tsr_koopman_ctrl/controller_node (the defaults), written by
 # `python -m tsr_koopman_ctrl.tools.config` from the laws' settings classes: do not edit by hand.
 #   ros2 run tsr_koopman_ctrl controller_node --ros-args --params-file controller.yaml
-# The node declares the settings of the law named by `controller`, and the excitation's.
+# The node declares the settings of the law named by `controller`, the observer's (offset-free
+# control) and the excitation's.
 """
 
 
@@ -32,6 +34,7 @@ def example_yaml(node_name='tsr_controller', default_law='koopman_mpc'):
              f'    controller: {default_law}   # one of {", ".join(sorted(CONTROLLERS))}',
              '    state_timeout: 5.0        # s without a state -> safe_tension']
     sections = {law: CONTROLLERS[law].Settings for law in sorted(CONTROLLERS)}
+    sections['observer'] = ObserverSettings       # offset-free control of any law; on by default
     sections['excitation'] = ExcitationSettings   # added to any law's tension; off by default
     for law, settings in sections.items():
         lines.append(f'    {law}:')

@@ -26,6 +26,7 @@ from tsr_sim.plant import plant_parameters
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.control import CONTROLLERS
 from tsr_koopman_ctrl.control.excitation import ExcitationSettings
+from tsr_koopman_ctrl.control.offset_free import ObserverSettings
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
@@ -40,8 +41,10 @@ def parse_args(argv):
     parser.add_argument('--model', help='model directory or shipped model name for the '
                         'koopman_* laws (default: their `model` setting, koopman_default)')
     parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
-                        help='a law setting (repeatable), e.g. koopman_mpc.horizon=8, or the '
-                        'excitation: excitation.kind=prbs; sequences as a,b,c')
+                        help='a law setting (repeatable), e.g. koopman_mpc.horizon=8, the '
+                        'observer (offset-free control, on by default): '
+                        'observer.disturbance=none, or the excitation: excitation.kind=prbs; '
+                        'sequences as a,b,c')
     parser.add_argument('--plant', default='nominal',
                         help='plant variant: a name under tsr_sim/config/plants (actuator_weak, '
                         'actuator_strong, heavy_robot, out_of_plane, eccentric_orbit, '
@@ -75,9 +78,13 @@ def parse_args(argv):
     return args
 
 
+#: --set sections that are not laws: the observer (offset-free control) and the excitation.
+SECTIONS = {'observer': ObserverSettings, 'excitation': ExcitationSettings}
+
+
 def settings_class(section):
-    """The settings class of a --set section: a law's, or the excitation's."""
-    return ExcitationSettings if section == 'excitation' else law_class(section).Settings
+    """The settings class of a --set section: a law's, the observer's or the excitation's."""
+    return SECTIONS.get(section) or law_class(section).Settings
 
 
 def law_settings(assignments, model):
@@ -122,7 +129,7 @@ def run(args, controller, x0, run_dir, name):
 
     recorder = start('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
                      {'output_dir': args.bags, 'bag_name': name})
-    law = {section: args.law_settings[section] for section in (controller, 'excitation')
+    law = {section: args.law_settings[section] for section in (controller, *SECTIONS)
            if args.law_settings.get(section)}
     control = start('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
                     {'controller': controller, 'wait_for_subscribers': 2, **law})

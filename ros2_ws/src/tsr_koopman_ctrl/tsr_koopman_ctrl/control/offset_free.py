@@ -1,0 +1,107 @@
+"""Offset-free control: any law wrapped with a disturbance observer (`observer.py`).
+
+The observer (an extended Kalman filter on the planar state and one input disturbance d) gives
+the law a filtered state; the law returns the tension it wants the plant to feel; the command is
+the observer's phi^-1 of it (u / d for a gain, u - d for an additive disturbance). With an input
+disturbance the steady-state target of the offset-free formulation (Pannocchia & Rawlings 2003;
+Maeder, Borrelli & Morari 2009) is the nominal one, x = 0 with u = 3 felt, so the target
+calculation reduces to that inversion and no constant gain or bias the observer converges to
+leaves an offset. A law with tension bounds of its own (koopman_mpc) gets them moved to the felt
+tensions the actuator can reach, [phi(0), phi(u_max)], so its constraints stay the real
+actuator's. The observer is told the clamped command that was sent (anti-windup for free).
+
+Why not an integrator on l - 1 for the linear laws: measured (README, offset-free control), the
+observer-wrapped linear LQR is as fast as the LQR on the nominal plant and settles in every
+disturbed case, while the best integrator (band 0.2, weight 3) cost up to 1.26x and a larger
+swing.
+"""
+
+import dataclasses
+from typing import ClassVar
+
+import numpy as np
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control.observer import (DisturbanceObserver, koopman_predictor,
+                                               physics_predictor)
+from tsr_koopman_ctrl.control.settings import build, LawSettings, setting
+
+
+@dataclasses.dataclass(frozen=True)
+class ObserverSettings(LawSettings):
+    law: ClassVar[str] = 'observer'
+    disturbance: str = setting('gain', "offset-free control: the input disturbance estimated "
+                               "('gain': actuator gain and mass error; 'additive': a tension "
+                               "bias) and corrected; 'none': the bare law",
+                               choices=('none', 'gain', 'additive'))
+    predictor: str = setting('auto', "the filter's one-step model: 'model' (the law's learned "
+                             "model: data-driven), 'physics' (the nominal equations), 'auto' "
+                             "(the law's model if it has one, else physics)",
+                             choices=('auto', 'model', 'physics'))
+    sensor_std: float = setting(1e-3, 'measurement noise std per component (dimensionless)',
+                                low=1e-9, high=1.0)
+    rate_noise_std: float = setting(1e-4, "model error per step on theta' and l'", low=0.0,
+                                    high=1.0)
+    position_noise_std: float = setting(1e-6, 'model error per step on theta and l - 1',
+                                        low=0.0, high=1.0)
+    disturbance_walk_std: float = setting(3e-3, 'how fast the disturbance may move, per step',
+                                          low=0.0, high=1.0)
+    initial_disturbance_std: float = setting(0.2, 'how far from nominal it may start', low=0.0,
+                                             high=10.0)
+    actuator_lag: float = setting(0.0, 'actuator time constant the filter models [tau] (0: '
+                                  'none; needed when the real lag exceeds ~0.1 tau)', low=0.0,
+                                  high=100.0)
+    filtered_state: bool = setting(True, 'give the law the filtered state (else the raw '
+                                   'measurement; the disturbance is corrected either way)')
+
+
+class OffsetFree:
+    """`law` wrapped with a disturbance observer; behaves as a law (reset, compute, name,
+    settings, fallbacks, model)."""
+
+    def __init__(self, law, settings=None, **overrides):
+        self.law = law
+        self.observer_settings = s = build(ObserverSettings, settings, overrides)
+        model = getattr(law, 'model', None)
+        if s.predictor == 'model' and model is None:
+            raise ValueError(f'observer.predictor model: {law.name} has no model')
+        use_model = s.predictor == 'model' or (s.predictor == 'auto' and model is not None)
+        predictor = (koopman_predictor(model) if use_model
+                     else physics_predictor(h=getattr(law, 'h', dynamics.PAPER_STEP)))
+        self.observer = DisturbanceObserver(
+            predictor, disturbance=s.disturbance, sensor_std=s.sensor_std,
+            rate_noise_std=s.rate_noise_std, position_noise_std=s.position_noise_std,
+            disturbance_walk_std=s.disturbance_walk_std,
+            initial_disturbance_std=s.initial_disturbance_std, actuator_lag_tau=s.actuator_lag,
+            h=getattr(law, 'h', dynamics.PAPER_STEP))
+        self.reset()
+
+    def __getattr__(self, name):
+        # name, settings, model, u_max, h, fallbacks, gain ...: the wrapped law's
+        return getattr(self.law, name)
+
+    def reset(self):
+        self.law.reset()
+        self.observer.reset()
+        self.last_command = None
+
+    @property
+    def disturbance(self):
+        return self.observer.disturbance
+
+    def compute(self, x):
+        measured = np.asarray(x, dtype=float)[:dynamics.PLANAR_DIM]
+        estimate = self.observer.update(measured, self.last_command)
+        if hasattr(self.law, 'input_range'):   # the law's own bounds: the felt range
+            low = max(self.observer.applied(0.0), 0.0)
+            high = max(self.observer.applied(self.law.u_max), low + 1e-6)
+            self.law.input_range = [float(self.law.model.input_map(u)) for u in (low, high)]
+        felt = self.law.compute(estimate if self.observer_settings.filtered_state else measured)
+        command = min(max(self.observer.command_for(felt), 0.0), self.law.u_max)
+        self.last_command = command   # the observer must know the clamped command
+        return command
+
+    def applied(self, command):
+        """Tell the observer the command actually sent, when it is not the one `compute`
+        returned (an excitation was added, or a clamp changed it)."""
+        self.last_command = float(command)
