@@ -123,6 +123,11 @@ def test_excitation_and_run_info_are_recorded(tmp_path, domain_id):
     law = LinearisedLqr()
     want = np.clip([law.compute(x) for x in loop.x[:steps]] + loop.excitation[:steps], 0, 5)
     np.testing.assert_allclose(loop.u[:steps], want, atol=1e-9)
+    # ... and the ROS-free loop with the same excitation is the same run.
+    want_x, want_u = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, steps,
+                                 excitation=Excitation(kind='prbs', amplitude=0.5, seed=3))
+    np.testing.assert_allclose(loop.x, want_x, atol=1e-9)
+    np.testing.assert_allclose(loop.u[:steps], want_u, atol=1e-9)
 
 
 def test_a_plant_variant_over_dds_is_the_ros_free_one(tmp_path, domain_id):

@@ -76,8 +76,8 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     SIGINT and SIGTERM only set a flag, so the context stays up after a signal and
     `drain(node, executor)` can still take what the DDS reader has acknowledged but not yet
     handed over (the recorder's bag then holds every message acknowledged before the stop).
-    Then `on_exit(node)` and clean-up; exit code 0. A callback raising SystemExit ends the
-    run the same way. A bad parameter (out of range, wrong type, invalid value) or model while
+    Then `on_exit(node)` and clean-up; exit code 0. A node whose `done` attribute a callback
+    sets ends the run the same way (an exception out of a callback would be logged as fatal). A bad parameter (out of range, wrong type, invalid value) or model while
     constructing is one clear line on stderr and exit code 2.
     """
     from rclpy.experimental import EventsExecutor
@@ -95,7 +95,7 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     executor = EventsExecutor()
     executor.add_node(node)
     try:
-        while not stop and rclpy.ok():
+        while not stop and rclpy.ok() and not getattr(node, 'done', False):
             executor.spin_once(timeout_sec=0.1)
         if drain is not None and rclpy.ok():
             drain(node, executor)

@@ -57,6 +57,7 @@ class SimNode(Node):
         self.wait_for_subscribers = declare(
             self, 'wait_for_subscribers', 0, 'lockstep: publish no state until the state topic '
             'has this many subscribers (controller, recorder)', 0, 1000)
+        self.done = False   # run_node stops spinning once set
         self.exit_on_finish = declare(self, 'exit_on_finish', False,
                                       'shut the node down when max_steps is reached or the '
                                       'state leaves the domain')
@@ -165,7 +166,7 @@ class SimNode(Node):
             self.get_logger().error(self.plant.message)
             self.publish_status()
             if self.exit_on_finish:
-                raise SystemExit(0)   # the run is over; the status and the bag say how
+                self.done = True   # the run is over; the status and the bag say how
             return
         self.publish_state()
         if self.progress_every and self.plant.step_index % self.progress_every == 0:
@@ -177,7 +178,7 @@ class SimNode(Node):
             self.get_logger().info(self.plant.message)
             self.publish_status()
             if self.exit_on_finish:
-                raise SystemExit(0)
+                self.done = True
 
     def sim_stamp(self):
         return Time(seconds=self.scale.tau_to_seconds(self.plant.tau)).to_msg()

@@ -14,7 +14,7 @@ from tsr_koopman_ctrl.control.limiter import TensionLimiter
 
 
 def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
-                u_max=dynamics.TENSION_LIMIT, plant=None, scale=None):
+                u_max=dynamics.TENSION_LIMIT, plant=None, scale=None, excitation=None):
     """Run `controller` from `x0` for `steps` steps: returns the true states (k+1, n) and the
     commanded tensions (k,), k = steps unless the state would leave the domain: then the loop
     halts there, as the simulator does, and k < steps.
@@ -22,7 +22,8 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     `plant`: simulator parameters making the true plant differ from the model (a mapping, e.g.
     `tsr_sim.plant.plant_parameters('actuator_weak')`, with `mass`, `orbit_rate`,
     `tether_length` for its units); `scale`: the units the controller converts with (default:
-    the paper's, `Scale()`).
+    the paper's, `Scale()`); `excitation`: a `control.excitation.Excitation` added to the law's
+    tension before the clamp, as the controller node adds it (reset here).
     """
     scale = scale or Scale()
     params = dict(plant or {}, initial_state=[float(v) for v in x0], step=h, substeps=substeps)
@@ -30,10 +31,18 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     plant_scale = sim.config.scale
     limiter = TensionLimiter(u_max)
     controller.reset()
+    if excitation is not None:
+        excitation.reset()
     states, tensions = [sim.state.copy()], []
     for _ in range(steps):
         measured = scale.state_from_si(plant_scale.state_to_si(sim.measure()))
-        u = limiter(controller.compute(measured))
+        u = controller.compute(measured)
+        if excitation is not None and excitation.active:
+            u = limiter(u + excitation.next())
+            if hasattr(controller, 'applied'):   # the observer must know what was sent
+                controller.applied(u)
+        else:
+            u = limiter(u)
         tension = scale.u_to_tension(u)
         if sim.accept(tension) is not None:
             raise ValueError(f'the plant refused the clamped tension {tension} N')
