@@ -77,8 +77,9 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     `drain(node, executor)` can still take what the DDS reader has acknowledged but not yet
     handed over (the recorder's bag then holds every message acknowledged before the stop).
     Then `on_exit(node)` and clean-up; exit code 0. A node whose `done` attribute a callback
-    sets ends the run the same way (an exception out of a callback would be logged as fatal). A bad parameter (out of range, wrong type, invalid value) or model while
-    constructing is one clear line on stderr and exit code 2.
+    sets ends the run the same way (an exception out of a callback would be logged as fatal).
+    A bad parameter (out of range, wrong type, invalid value) or model while constructing is
+    one clear line on stderr and exit code 2.
     """
     from rclpy.experimental import EventsExecutor
     from rclpy.signals import SignalHandlerOptions

@@ -27,3 +27,28 @@ def make_controller(name, settings=None, observer=None, **overrides):
         observer = ObserverSettings(**observer)
     observer = observer or ObserverSettings()
     return law if observer.disturbance == 'none' else OffsetFree(law, observer)
+
+
+def preset(name):
+    """{law: {setting: value}} of a settings preset: a parameter file (`ros__parameters` with a
+    section per law), given by path or by name under the installed config/ ('untuned': the
+    settings before tuning). The laws' defaults are the tuned settings."""
+    import os
+
+    import yaml
+    path = name
+    if not os.path.isfile(path):
+        from ament_index_python.packages import get_package_share_directory
+        path = os.path.join(get_package_share_directory('tsr_koopman_ctrl'), 'config',
+                            f'{name}.yaml')
+        if not os.path.isfile(path):
+            raise ValueError(f'no settings preset {name!r} (tried {os.path.abspath(name)}, '
+                             f'{path})')
+    with open(path) as stream:
+        document = yaml.safe_load(stream) or {}
+    (section,) = document.values()
+    laws = {law: dict(values) for law, values in section['ros__parameters'].items()
+            if law in CONTROLLERS}
+    for law, values in laws.items():
+        law_class(law).Settings(**values)     # checked: one line if a value is out of range
+    return laws

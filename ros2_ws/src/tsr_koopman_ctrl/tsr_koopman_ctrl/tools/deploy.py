@@ -27,7 +27,7 @@ from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.control import CONTROLLERS
 from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings
-from tsr_koopman_ctrl.control.registry import law_class
+from tsr_koopman_ctrl.control.registry import law_class, preset
 from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
@@ -40,6 +40,9 @@ def parse_args(argv):
     parser.add_argument('--controller', default='koopman_mpc', choices=sorted(CONTROLLERS))
     parser.add_argument('--model', help='model directory or shipped model name for the '
                         'koopman_* laws (default: their `model` setting, koopman_default)')
+    parser.add_argument('--preset', help="a settings preset for the laws ('untuned': "
+                        'config/untuned.yaml, the settings before tuning; or a parameter file); '
+                        '--set applies on top')
     parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
                         help='a law setting (repeatable), e.g. koopman_mpc.horizon=8, the '
                         'observer (offset-free control, on by default): '
@@ -67,6 +70,8 @@ def parse_args(argv):
     args = parser.parse_args(argv)
     try:
         args.law_settings = law_settings(args.set, args.model)
+        for law, values in (preset(args.preset) if args.preset else {}).items():
+            args.law_settings[law] = {**values, **args.law_settings.get(law, {})}
     except ValueError as error:
         parser.error(str(error))
     if not dynamics.in_domain(np.asarray(args.x0, dtype=float)):

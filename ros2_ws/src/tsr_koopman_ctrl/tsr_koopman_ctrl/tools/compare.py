@@ -1,0 +1,136 @@
+"""The comparison: every law, untuned and tuned, from the comparison and the held-out starts,
+scored against the minimum-time frontier. ROS-free (the DDS loop is step-identical).
+
+    python -m tsr_koopman_ctrl.tools.compare [--laws ...] [--out docs/comparison]
+
+Every law runs offset-free (the default observer) with its settings from a preset: 'tuned' (the
+laws' defaults, set by tools/tune.py) or 'untuned' (config/untuned.yaml). Per run: settle time
+into the 1% zone, swing, the frontier at that swing from that start (evaluation/frontier.py,
+computed by the project's own minimum-time solver) and the ratio, tension integral and peak,
+the law's compute time per step (median, p99) and solver fallbacks. Writes comparison.md,
+comparison.json and a plot per start.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller
+from tsr_koopman_ctrl.control.registry import preset
+from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
+from tsr_koopman_ctrl.evaluation.plots import plot_deployments
+
+
+class Timed:
+    """A law whose compute() is timed (wall clock, per call)."""
+
+    def __init__(self, law):
+        self.law, self.seconds = law, []
+
+    def __getattr__(self, name):
+        return getattr(self.law, name)
+
+    def reset(self):
+        self.law.reset()
+
+    def compute(self, x):
+        start = time.perf_counter()
+        u = self.law.compute(x)
+        self.seconds.append(time.perf_counter() - start)
+        return u
+
+
+def run(law, settings, start, steps):
+    timed = Timed(make_controller(law, **settings))
+    states, tensions = closed_loop(timed, start, steps)
+    row = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions,
+                      start=start, halted=len(states) <= steps)
+    us = np.array(timed.seconds) * 1e6
+    row.update(compute_median_us=float(np.median(us)),
+               compute_p99_us=float(np.percentile(us, 99)),
+               fallbacks=int(getattr(timed.law, 'fallbacks', 0)))
+    return row, (np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions)
+
+
+def compare(laws, presets, steps):
+    rows, loops = [], {}
+    starts = [(s, 'comparison') for s in COMPARISON_STARTS] + \
+        [(s, 'held-out') for s in HELD_OUT_STARTS]
+    for name in presets:
+        values = {} if name == 'tuned' else preset(name)
+        for law in laws:
+            for start, kind in starts:
+                row, loop = run(law, values.get(law, {}), start, steps)
+                row.update(law=law, preset=name, start=list(start), starts=kind)
+                rows.append(row)
+                loops.setdefault(tuple(start), {})[f'{law} ({name})'] = loop
+                print(f"{law} ({name}) from {list(start)}: settle {row['settle_tau']}, "
+                      f"ratio {row['frontier_ratio']}", flush=True)
+    return rows, loops
+
+
+def fmt(value, digits=2):
+    return '-' if value is None else f'{value:.{digits}f}'
+
+
+def markdown(rows):
+    lines = ['| law | settings | starts | x0 | settle tau | swing [rad] | frontier tau | ratio | '
+             'integral u dtau | max u | compute median / p99 [us] | fallbacks |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|']
+    for r in rows:
+        settle = fmt(r['settle_tau']) if r['settle_tau'] is not None else (
+            'left the domain' if r['halted'] else 'not reached')
+        lines.append(f"| {r['law']} | {r['preset']} | {r['starts']} | {r['start']} | {settle} | "
+                     f"{r['swing']:.3f} | {fmt(r['frontier_tau'])} | {fmt(r['frontier_ratio'])} "
+                     f"| {r['tension_integral']:.2f} | {r['tension_max']:.2f} | "
+                     f"{r['compute_median_us']:.0f} / {r['compute_p99_us']:.0f} | "
+                     f"{r['fallbacks']} |")
+    lines += ['', '| law | settings | settled (comparison + held-out) | frontier ratio, '
+              'comparison starts | frontier ratio, held-out starts |', '|---|---|---|---|---|']
+    keys = sorted({(r['law'], r['preset']) for r in rows}, key=lambda k: (k[1], k[0]))
+    for law, name in keys:
+        mine = [r for r in rows if (r['law'], r['preset']) == (law, name)]
+        settled = sum(r['settle_tau'] is not None for r in mine)
+
+        def span(kind):
+            ratios = [r['frontier_ratio'] for r in mine if r['starts'] == kind
+                      and r['frontier_ratio'] is not None]
+            return f'{min(ratios):.2f}..{max(ratios):.2f}' if ratios else '-'
+        lines.append(f'| {law} | {name} | {settled}/{len(mine)} | {span("comparison")} | '
+                     f'{span("held-out")} |')
+    return '\n'.join(lines) + '\n'
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p.add_argument('--laws', nargs='+', default=sorted(CONTROLLERS), choices=sorted(CONTROLLERS))
+    p.add_argument('--presets', nargs='+', default=['untuned', 'tuned'])
+    p.add_argument('--steps', type=int, default=2000)
+    p.add_argument('--out', default=os.path.join('out', 'comparison'))
+    args = p.parse_args(argv)
+    try:
+        rows, loops = compare(args.laws, args.presets, args.steps)
+    except ValueError as error:
+        print(f'compare: {error}', file=sys.stderr)
+        return 2
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, 'comparison.json'), 'w') as f:
+        json.dump(rows, f, indent=1)
+    text = markdown(rows)
+    with open(os.path.join(args.out, 'comparison.md'), 'w') as f:
+        f.write(text)
+    for index, (start, runs) in enumerate(loops.items()):
+        plot_deployments({label: (tau, x, u) for label, (tau, x, u) in runs.items()},
+                         os.path.join(args.out, f'x0_{index}.png'),
+                         title=f'TSR deployment from x0 = {list(start)}')
+    print(text)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,30 @@
+"""The comparison command and the settings presets."""
+
+import json
+
+import pytest
+
+from tsr_koopman_ctrl.control.registry import preset
+from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS
+from tsr_koopman_ctrl.tools import compare
+
+
+def test_the_untuned_preset_holds_the_settings_before_tuning():
+    untuned = preset('untuned')
+    assert untuned['linear_lqr'] == {'q': [1.0, 1.0, 1.0, 1.0], 'r': 1.0}
+    assert untuned['koopman_lqr']['r'] == 15.0 and untuned['koopman_mpc']['horizon'] == 5
+    with pytest.raises(ValueError, match="no settings preset 'bogus'"):
+        preset('bogus')
+
+
+def test_compare_scores_every_start_with_the_loop_s_own_figures(tmp_path):
+    assert compare.main(['--laws', 'linear_lqr', '--presets', 'untuned', '--steps', '1200',
+                         '--out', str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / 'comparison.json').read_text())
+    assert len(rows) == 9 and {r['starts'] for r in rows} == {'comparison', 'held-out'}
+    from tsr_koopman_ctrl.control import make_controller
+    first = closed_loop_figures(make_controller('linear_lqr', q=[1.0] * 4, r=1.0),
+                                COMPARISON_STARTS[0], 1200)
+    assert rows[0]['settle_tau'] == first['settle_tau'] and rows[0]['swing'] == first['swing']
+    assert rows[0]['compute_median_us'] > 0.0
+    assert '| linear_lqr | untuned |' in (tmp_path / 'comparison.md').read_text()
