@@ -21,7 +21,7 @@ import subprocess
 import sys
 import time
 
-from tsr_koopman_ctrl.control import CONTROLLERS
+from tsr_koopman_ctrl.control import CONTROLLERS, make_controller
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import fields
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS, HELD_OUT_STARTS
@@ -70,10 +70,10 @@ def as_params(law, settings):
 
 
 def score(law, settings, starts, swing_max, steps):
-    """(mean score over starts, per-start figures). A law that cannot be built scores the
-    penalty everywhere."""
+    """(mean score over starts, per-start figures), the law built as the node builds it
+    (offset-free by default). A law that cannot be built scores the penalty everywhere."""
     try:
-        controller = law_class(law)(**settings)
+        controller = make_controller(law, **settings)
     except ValueError as error:
         return PENALTY_TAU, [{'error': str(error)}] * len(starts)
     runs, scores = [], []
