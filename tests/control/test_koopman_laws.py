@@ -70,8 +70,8 @@ def test_mpc_with_the_local_terminal_cost_moves_like_the_discrete_lqr():
     """No active constraint, input cost on the level: the terminal cost-to-go makes the
     finite-horizon MPC the infinite-horizon LQR (Bellman), here against scipy's DARE."""
     model, a_d, b_d = exact_linear_lifted_model()
-    mpc = KoopmanMpc(model=model, horizon=10, r=1.0, terminal='local', u_max=1e6,
-                     theta_max=3.2, overshoot_max=10.0)
+    mpc = KoopmanMpc(model=model, horizon=10, r=1.0, q=(1.0, 1.0, 1.0, 1.0), terminal='local',
+                     u_max=1e6, theta_max=3.2, overshoot_max=10.0)
     gain, _ = discrete_lqr_gain(a_d, b_d, np.eye(4), 1.0)
     for x in ([0.01, -0.02, 0.015, 0.005], [-0.05, 0.0, -0.03, 0.02]):
         assert mpc.compute(np.array(x)) == pytest.approx(3.0 - gain @ x, abs=1e-5)

@@ -11,8 +11,11 @@ from tsr_koopman_ctrl.control import (closed_loop, FractionalOrderPd, Linearised
 from tsr_koopman_ctrl.evaluation import run_figures
 
 
+UNTUNED = {'q': (1.0, 1.0, 1.0, 1.0), 'r': 1.0}
+
+
 def test_linearised_lqr_deploys_into_the_one_percent_zone():
-    states, u = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, 2000)
+    states, u = closed_loop(LinearisedLqr(**UNTUNED), dynamics.PAPER_INITIAL_STATE, 2000)
     tau = np.arange(states.shape[0]) * dynamics.PAPER_STEP
     summary = run_figures(tau, states, u)
     # docs/paper_notes.md: ~9.1 tau with theta in [-0.80, 0.02].
@@ -90,6 +93,7 @@ def test_limiter_returns_plain_floats_and_counts_in_ints():
     assert type(limited) is float and type(limiter.clamped) is int and limiter.clamped == 1
 
 
-def test_fractional_pd_default_gains_are_the_linear_lqr_gains():
-    np.testing.assert_allclose(FractionalOrderPd().settings.gains, LinearisedLqr().gain,
-                               atol=1e-3)
+def test_the_untuned_fractional_pd_gains_are_the_untuned_linear_lqr_gains():
+    from tsr_koopman_ctrl.control.registry import preset
+    np.testing.assert_allclose(preset('untuned')['fractional_pd']['gains'],
+                               LinearisedLqr(**UNTUNED).gain, atol=1e-3)

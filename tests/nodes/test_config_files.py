@@ -19,7 +19,9 @@ def test_controller_config_is_derived_from_the_law_settings():
     python -m tsr_koopman_ctrl.tools.config)."""
     assert (CONFIG / 'controller.yaml').read_text() == example_yaml()
     params = yaml.safe_load(example_yaml())['tsr_controller']['ros__parameters']
-    assert params['koopman_mpc']['horizon'] == 5 and params['linear_lqr']['q'] == [1.0] * 4
+    from tsr_koopman_ctrl.control import KoopmanMpc, LinearisedLqr
+    assert params['koopman_mpc']['horizon'] == KoopmanMpc.Settings().horizon
+    assert params['linear_lqr']['q'] == list(LinearisedLqr.Settings().q)
 
 
 def test_recorder_config_records_the_loop_topics():

@@ -13,10 +13,11 @@ from tsr_koopman_ctrl.control.settings import LawSettings, setting
 @dataclasses.dataclass(frozen=True)
 class FractionalPdSettings(LawSettings):
     law: ClassVar[str] = 'fractional_pd'
-    alpha: float = setting(0.9, 'order of the fractional derivative', low=0.01, high=1.5,
+    # Tuned: tools/tune.py, 60 trials, swing <= 0.8 rad (docs/tuning/fractional_pd_swing0.8.md);
+    # before tuning alpha = 0.9 and the linear LQR's gains for Q = I, R = 1 (config/untuned.yaml).
+    alpha: float = setting(0.9493, 'order of the fractional derivative', low=0.01, high=1.5,
                            tune=(0.5, 1.2, 'linear'))
-    #: The linear_lqr gains for Q = I, R = 1 (a test checks they still are).
-    gains: tuple = setting((2.872, -0.392, -6.162, -3.429),
+    gains: tuple = setting((5.429, 3.530, -11.41, -8.996),
                            'gains (k_theta, d_theta, k_l, d_l) on theta, D^alpha theta, l - 1, '
                            'D^alpha (l - 1)',
                            tune=[(0.0, 10.0, 'linear'), (-5.0, 5.0, 'linear'),
@@ -29,7 +30,7 @@ class FractionalOrderPd(Law):
 
     D^alpha by Grunwald-Letnikov over the last `memory` samples of period h (history before the
     first sample taken equal to it). With alpha = 1 this is the linearised LQR law with the rates
-    replaced by differenced positions; the default gains are that law's (Q = I, R = 1) and
+    replaced by differenced positions; the untuned gains are that law's (Q = I, R = 1) and
     alpha = 0.9 adds the fractional operator's memory.
     """
 
