@@ -46,17 +46,22 @@ def burst(node, n):
     return elapsed
 
 
-def start_recorder(domain, tmp, name):
+def start_recorder(domain, tmp, name, topic=TOPIC):
     return NodeProcess('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
-                       {'topics': [TOPIC], 'output_dir': tmp, 'bag_name': name,
+                       {'topics': [topic], 'output_dir': tmp, 'bag_name': name,
                         'discovery_period': 0.05},
                        domain_id=domain, log_path=os.path.join(tmp, f'{name}.log'))
 
 
-def kill_loss(node, domain, tmp, rate, seconds):
-    """Seconds of a `rate` msg/s stream lost by a SIGKILL after `seconds`."""
-    recorder = start_recorder(domain, tmp, 'killed')
-    pub = node.create_publisher(UInt64, TOPIC, BURST_QOS)
+def kill_loss(node, domain, tmp, rate, seconds, name):
+    """Seconds of a `rate` msg/s stream lost by a SIGKILL after `seconds` (each run its own
+    bag `name`: the recorder never overwrites a bag, so a reused name would read an old one).
+    Each run has its own topic too: a killed recorder's subscription stays in the graph until
+    its DDS lease expires, so on a shared topic the next run would start publishing before
+    the new recorder has matched."""
+    topic = f'{TOPIC}_{name}'
+    recorder = start_recorder(domain, tmp, name, topic)
+    pub = node.create_publisher(UInt64, topic, BURST_QOS)
     while pub.get_subscription_count() == 0:
         time.sleep(0.05)
     start, sent = time.perf_counter(), 0
@@ -68,7 +73,7 @@ def kill_loss(node, domain, tmp, rate, seconds):
         time.sleep(0.001)
     recorder.kill()
     node.destroy_publisher(pub)
-    kept = [m.data for _, m in BagReader(os.path.join(tmp, 'killed')).decoded()]
+    kept = [m.data for _, m in BagReader(os.path.join(tmp, name)).decoded()]
     return (sent - len(kept)) / rate, sent, len(kept), kept == list(range(len(kept)))
 
 
@@ -98,8 +103,8 @@ def main():
         bare.send_signal(2)
         bare.wait(10)
         bare_count = int(open(count_file).read())
-        kills = [kill_loss(node, domain, tmp, args.kill_rate, random.uniform(3.0, 6.0))
-                 for _ in range(args.kills)]
+        kills = [kill_loss(node, domain, tmp, args.kill_rate, random.uniform(3.0, 6.0),
+                           f'killed_{index}') for index in range(args.kills)]
     node.destroy_node()
     rclpy.shutdown(context=context)
     print(f'recorder: {n} messages in {rec_s:.2f} s = {n / rec_s:,.0f} msg/s; stopped at once '

@@ -185,6 +185,22 @@ def test_gaps_are_skipped_and_counted(tmp_path):
             in windows.warnings[0])
 
 
+def test_overlapping_windows_start_every_stride_steps_and_never_span_a_gap(tmp_path):
+    x, u, _ = loop_data(140, seed=1)
+    steps = np.r_[np.arange(0, 40), np.arange(45, 145)]   # steps 40..44 missing
+    windows = recorded.read_windows(write_loop(tmp_path / 'b', x, u, steps=steps), steps=10,
+                                    stride=4)
+    # Runs: states 0-39 (39 transitions) and 40-139 (99): starts 0, 4, .., 28 and 40, .., 128.
+    starts = list(range(0, 39 - 10 + 1, 4)) + list(range(40, 139 - 10 + 1, 4))
+    assert len(windows.data) == windows.provenance['windows'] == len(starts) == 8 + 23
+    for window, start in zip(windows.data.x, starts):
+        np.testing.assert_allclose(window, x[start:start + 11], atol=1e-12)
+    for window, start in zip(windows.data.u, starts):
+        np.testing.assert_allclose(window, u[start:start + 10], atol=1e-12)
+    with pytest.raises(ValueError, match='stride'):
+        recorded.read_windows(tmp_path / 'b', steps=10, stride=0)
+
+
 def test_truncated_bag_is_recovered_with_a_warning(tmp_path):
     x, u, excitation = loop_data(600, seed=2)
     path = write_loop(tmp_path / 'b', x, u, excitation=excitation, chunk_size=4000)

@@ -59,3 +59,32 @@ def test_shipped_model_error_on_fresh_data_stays_under_its_record(name):
     # 2000 fresh trajectories against the 5000 of the record: allow sampling noise of 25%.
     assert result['summed_mse'] < 1.25 * recorded
     assert model.metadata['config']['lift_dim'] == 36
+
+
+def test_a_model_anchored_at_another_tension_holds_its_equilibrium_there(tiny_model):
+    """The torch model and the controller's numpy model agree on an anchor other than 3: the
+    lifted equilibrium drifts nowhere at (x = 0, u = anchor) in both."""
+    import dataclasses
+
+    import torch
+    from tsr_koopman_ctrl.learning.deep_koopman import DeepKoopman
+    from tsr_koopman_ctrl.model.lifted import LiftedModel
+    from tsr_koopman_ctrl.model.model_file import load
+    tensors, config, _ = load(tiny_model[0])
+    config = dataclasses.replace(config, anchor_equilibrium=True, anchor_tension=3.3)
+    lifted = LiftedModel(tensors, config)
+    net = DeepKoopman.from_numpy(tensors, config).double().eval()
+    origin = np.zeros(4)
+    z_ref, u_hat_ref = lifted.reference()
+    assert u_hat_ref == pytest.approx(0.0, abs=1e-12)
+    assert lifted.tension_from_input(origin, u_hat_ref) == pytest.approx(3.3, abs=1e-9)
+    with torch.no_grad():
+        # (the torch model builds its anchor constant in float32)
+        assert float(net.psi_uu(torch.tensor([3.3], dtype=torch.float64))) == pytest.approx(
+            0.0, abs=1e-6)
+        for u in (0.5, 3.0, 4.5):
+            assert float(net.psi_u(torch.zeros(1, 4, dtype=torch.float64),
+                                   torch.tensor([u], dtype=torch.float64))) == pytest.approx(
+                float(lifted.psi_u(origin, u)), abs=1e-6)
+    with pytest.raises(ValueError, match='anchor_tension'):
+        dataclasses.replace(config, anchor_tension=6.0)

@@ -94,8 +94,11 @@ def test_fine_tuning_records_bags_init_and_errors_before_and_after(init_model, b
             (bag / f'{bag.name}_0.mcap').read_bytes()).hexdigest()
     assert info['bags'][0]['messages'] == {'/tsr/excitation': 160, '/tsr/run_info': 2,
                                            '/tsr/state': 160, '/tsr/tension_cmd': 160}
-    assert [bag['windows'] for bag in info['bags']] == [5, 4]
-    assert info['recorded_windows'] == 9 and meta['data']['train_trajectories'] == 9
+    # 160 and 130 states: 159 and 129 transitions; a 30-step window starts every 3 steps
+    # (the default stride): starts 0..129 and 0..99. Held-out windows never overlap: 99 // 30.
+    assert [bag['windows'] for bag in info['bags']] == [44, 34]
+    assert info['stride'] == 3
+    assert info['recorded_windows'] == 78 and meta['data']['train_trajectories'] == 78
     assert info['held_out'][0]['sha256'] == sha256_of(c) and info['held_out'][0]['windows'] == 3
     weights = (init_dir / 'weights.safetensors').read_bytes()
     assert info['init'] == {'given': str(init_dir), 'path': str(init_dir.resolve()),
@@ -163,8 +166,9 @@ def test_bad_bags_are_named_and_exit_2_or_skipped(bags, tmp_path, capsys):
 
 def test_from_scratch_with_a_config_and_a_sampled_mix(bags, init_model, tmp_path, capsys):
     a, b, c = bags
+    # --stride 30: non-overlapping windows, 5 + 4 of them.
     code, _, err = run(capsys, '--bags', a, b, '--held-out', c, '--out', tmp_path / 'm',
-                       '--config-json', json.dumps({**TINY, 'epochs': 1}),
+                       '--config-json', json.dumps({**TINY, 'epochs': 1}), '--stride', '30',
                        '--sampled-ratio', '2', '--test-trajectories', '0')
     assert code == 0, err
     meta = json.loads((tmp_path / 'm' / 'model.json').read_text())
@@ -210,8 +214,30 @@ def test_retrain_under_two_ranks_shares_out_the_bags_and_rank_0_writes(bags, tmp
     assert [(tmp_path / f'rank{r}.code').read_text() for r in (0, 1)] == ['0', '0']
     assert (tmp_path / 'rank1.out').read_text() == (tmp_path / 'rank1.err').read_text() == ''
     printed = (tmp_path / 'rank0.out').read_text()
-    assert 'training on 9 recorded windows from 2 bags, 2 ranks sharing out bags' in printed
+    assert 'training on 78 recorded windows from 2 bags, 2 ranks sharing out bags' in printed
     info = json.loads((out / 'model.json').read_text())['retrain']
     assert (info['world_size'], info['sharding'], info['per_rank_batch']) == (2, 'bags', 16)
     assert [bag['sha256'] for bag in info['bags']] == [sha256_of(a), sha256_of(b)]
     assert info['errors_after']['held_out']['windows'] == 3
+
+
+def test_anchor_from_data_is_the_mean_command_inside_the_zone():
+    from tsr_koopman_ctrl.learning.dataset import Dataset
+    from tsr_koopman_ctrl.model import model_file
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-0.5, 0.5, (20, 31, 4))
+    x[:10, :, (0, 2)] = rng.uniform(-0.009, 0.009, (10, 31, 2))   # 10 windows in the zone
+    u = np.where(np.arange(20)[:, None] < 10, 3.3, 1.0) + rng.normal(0, 0.01, (20, 30))
+    data = Dataset(x, u, 0.01, [])
+    config, record = retrain.anchored(model_file.KoopmanConfig(), 'data', data)
+    inside = (np.abs(x[:, :-1, 0]) <= 0.01) & (np.abs(x[:, :-1, 2]) <= 0.01)
+    assert record['samples'] == inside.sum() == 300
+    assert config.anchor_tension == pytest.approx(u[inside].mean(), abs=1e-12)
+    assert abs(config.anchor_tension - 3.3) < 0.002
+    few = Dataset(x[10:], u[10:], 0.01, [])             # no step in the zone: kept
+    assert retrain.anchored(model_file.KoopmanConfig(), 'data', few)[0].anchor_tension == 3.0
+    assert retrain.anchored(model_file.KoopmanConfig(), 3.2, few)[0].anchor_tension == 3.2
+    with pytest.raises(retrain.UsageError, match='anchor'):
+        retrain.anchored(model_file.KoopmanConfig(), 7.0, few)
+    with pytest.raises(retrain.UsageError, match='--anchor'):
+        retrain.parse_anchor('zero')

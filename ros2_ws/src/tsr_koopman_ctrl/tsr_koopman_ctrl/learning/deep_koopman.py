@@ -30,7 +30,6 @@ Phi and psi_uu, so the equilibrium is an exact fixed point and L_eq is identical
 import numpy as np
 import torch
 from torch import nn
-from tsr_sim import dynamics
 
 
 def mlp(inputs, hidden, layers, outputs, activation):
@@ -96,7 +95,7 @@ class DeepKoopman(nn.Module):
     def psi_uu(self, u):
         value = self.input_map(u)
         if self.config.anchor_equilibrium:
-            tension = torch.full((), dynamics.EQUILIBRIUM_TENSION, device=value.device)
+            tension = torch.full((), self.config.anchor_tension, device=value.device)
             value = value - self.input_map(tension)
         return value
 
@@ -164,9 +163,9 @@ def one_step_error(model, z_true, x, u):
 
 
 def equilibrium_drift(model):
-    """Mean squared drift rate (per tau) of the lifted model at x = 0, u = 3."""
+    """Mean squared drift rate (per tau) of the lifted model at x = 0, u = its anchor (3)."""
     origin = torch.zeros(1, model.config.state_dim, device=model.A.device)
-    tension = torch.full((1,), dynamics.EQUILIBRIUM_TENSION, device=model.A.device)
+    tension = torch.full((1,), model.config.anchor_tension, device=model.A.device)
     z = model.psi_x(origin)
     drift = z @ model.A.T + model.psi_u(origin, tension).unsqueeze(-1) * model.B.T - z
     return ((drift / model.config.h) ** 2).mean()

@@ -239,15 +239,21 @@ def _runs(link):
 
 
 def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=None,
-                 max_abs_state=MAX_ABS_STATE):
+                 max_abs_state=MAX_ABS_STATE, stride=None):
     """Cut one bag into `steps`-step windows, with every check (module docstring).
+
+    A window starts every `stride` steps of a gap-free run (default `steps`: windows that do not
+    overlap). Overlapping windows (stride < steps) show the model every phase of a deployment,
+    which fine-tuning on a few bags needs (docs/loop.md measures it); errors are reported on
+    non-overlapping windows.
 
     `h` and `state_dim`, when given, are what the windows must have (the model's); a bag with
     another sample period or state size is refused. Returns BagWindows; raises BagDataError.
     """
     bag = os.fspath(path)
-    if steps < 1:
-        raise ValueError(f'steps must be >= 1, got {steps}')
+    stride = steps if stride is None else int(stride)
+    if steps < 1 or stride < 1:
+        raise ValueError(f'steps and stride must be >= 1, got {steps}, {stride}')
     if not os.path.exists(bag):
         raise BagDataError(bag, 'no such file or directory')
     try:
@@ -312,7 +318,7 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     contiguous = np.diff(step) == 1
     link = contiguous & state_ok[:-1] & state_ok[1:] & accepted[:-1]
     runs = _runs(link)
-    starts = [start + k * steps for start, length in runs for k in range(length // steps)]
+    starts = [start + k for start, length in runs for k in range(0, length - steps + 1, stride)]
     xs = np.array([x[s:s + steps + 1] for s in starts]).reshape(-1, steps + 1, x.shape[1])
     us = np.array([u[s:s + steps] for s in starts]).reshape(-1, steps)
 

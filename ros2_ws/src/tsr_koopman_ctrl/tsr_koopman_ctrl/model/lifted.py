@@ -120,7 +120,7 @@ class LiftedModel:
         self.input_gain = Mlp(tensors, 'input_gain', config.activation)
         self.input_map = MonotoneMap(tensors, config.tension_range)
         if config.anchor_equilibrium:
-            self.anchor_at(dynamics.equilibrium_state(self.n), dynamics.EQUILIBRIUM_TENSION)
+            self.anchor_at(dynamics.equilibrium_state(self.n), config.anchor_tension)
         self.A, self.B = tensors['A'], tensors['B']
         self.C = np.eye(self.n, config.lifted_dim)
 
@@ -141,9 +141,10 @@ class LiftedModel:
         return model
 
     def reference(self):
-        """(z_d, u_hat_d) = (psi_x(0), psi_u(0, 3)): the deployed equilibrium, lifted."""
+        """(z_d, u_hat_d) = (psi_x(0), psi_u(0, u_d)): the deployed equilibrium, lifted; u_d the
+        model's anchor tension (3 unless it was retrained on a plant that needs another)."""
         origin = dynamics.equilibrium_state(self.n)
-        return self.psi_x(origin), float(self.psi_u(origin, dynamics.EQUILIBRIUM_TENSION))
+        return self.psi_x(origin), float(self.psi_u(origin, self.config.anchor_tension))
 
     def state_weight(self, spec):
         """Q' on the lifted state: 'lifted' (I), 'state' (C^T C) or C^T diag(q) C for q of n."""

@@ -61,6 +61,11 @@ class KoopmanConfig:
     #: so z = 0 is psi_x(0) and u_hat = 0 is psi_u(0, 3): the known equilibrium is an exact
     #: fixed point of the lifted model (no drift at the state LQR and MPC regulate to).
     anchor_equilibrium: bool = False
+    #: The tension (N in the paper's dimensionless units) that holds the deployed equilibrium
+    #: on the plant the model was trained for: 3 for the nominal plant; a model retrained on a
+    #: plant whose actuator or mass differs anchors where that plant's data settles (retrain's
+    #: --anchor data), since psi_uu(u) - psi_uu(3) cannot hold a plant that needs 3.33.
+    anchor_tension: float = 3.0
     #: Not in the paper: weight of L_step, the relative one-step error from every measured state
     #: (what a controller that lifts each measurement relies on).
     weight_one_step: float = 0.0
@@ -86,6 +91,9 @@ class KoopmanConfig:
             raise ValueError(f'activation must be one of {ACTIVATIONS}, got {self.activation!r}')
         if not 0.0 < self.gamma <= 1.0:
             raise ValueError(f'gamma must be in (0, 1], got {self.gamma}')
+        if not self.tension_range[0] <= self.anchor_tension <= self.tension_range[1]:
+            raise ValueError(f'anchor_tension must lie in tension_range {self.tension_range}, '
+                             f'got {self.anchor_tension}')
         if not self.min_input_gain > 0.0:
             raise ValueError('min_input_gain must be > 0 (psi_ux must stay away from zero)')
 
