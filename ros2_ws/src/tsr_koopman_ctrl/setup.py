@@ -22,6 +22,8 @@ setup(
     name=package_name,
     version='0.2.0',
     packages=find_packages(exclude=['test']),
+    # The frontier table evaluation/frontier.py reads next to itself.
+    package_data={package_name: ['evaluation/frontier_table.json']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
@@ -45,6 +47,7 @@ setup(
             'evaluate = tsr_koopman_ctrl.tools.evaluate:main',
             'mpc_sweep = tsr_koopman_ctrl.tools.mpc_sweep:main',
             'bag = tsr_koopman_ctrl.tools.bag:main',
+            'frontier = tsr_koopman_ctrl.tools.frontier:main',
         ],
     },
 )
