@@ -49,7 +49,7 @@ def exact_linear_lifted_model(lift_dim=2):
 def test_koopman_lqr_on_an_exact_linear_lift_is_the_discrete_lqr():
     model, a_d, b_d = exact_linear_lifted_model()
     assert float(model.input_map(3.0)) == pytest.approx(0.0, abs=1e-9)
-    controller = KoopmanLqr(model=model, r=1.0, state_weight='state')
+    controller = KoopmanLqr(model=model, r=1.0, state_weight='state', q=(1.0, 1.0, 1.0, 1.0))
     gain, _ = discrete_lqr_gain(a_d, b_d, np.eye(4), 1.0)
     x = np.array([0.01, -0.02, 0.015, 0.005])
     assert controller.compute(x) == pytest.approx(3.0 - gain @ x, abs=1e-9)
@@ -93,7 +93,7 @@ class DriftFreeMpc(KoopmanMpc):
 def test_mpc_without_active_constraints_moves_like_the_lqr(tiny_model):
     """With the terminal cost from the DARE, unconstrained MPC is the LQR (Bellman)."""
     model = LiftedModel.load(tiny_model[0])
-    lqr = KoopmanLqr(model=model)
+    lqr = KoopmanLqr(model=model, r=15.0, state_weight='lifted')
     for solver in ('daqp', 'osqp'):
         mpc = DriftFreeMpc(model=model, horizon=10, r=15.0, state_weight='lifted',
                            terminal='riccati', u_max=1e6, theta_max=3.2, overshoot_max=10.0,

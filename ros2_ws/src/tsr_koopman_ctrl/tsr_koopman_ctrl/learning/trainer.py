@@ -10,6 +10,10 @@ state normalisation. Data-parallel: inside a torch.distributed process group of 
 rank (`learning.distributed`), `fit` trains this rank's shard under DistributedDataParallel
 with `batch_size / world size` windows per rank, and only rank 0 prints and writes the
 checkpoint; without one (or with one rank) it is the single-process path, unchanged.
+
+`Trainer(..., structure=block_koopman.BlockStructure())` trains a `block_koopman.BlockKoopman`
+(observables stable by construction) instead of the dense model; what it saves is an ordinary
+model file.
 """
 
 import dataclasses
@@ -68,8 +72,10 @@ class Trainer:
     slices): for a data order fixed by the caller, as the DDP equivalence test needs.
     """
 
-    def __init__(self, config, out_dir=None, device=None, progress=True, shuffle=True):
+    def __init__(self, config, out_dir=None, device=None, progress=True, shuffle=True,
+                 structure=None):
         self.config = config
+        self.structure = structure
         self.out_dir = pathlib.Path(out_dir) if out_dir else None
         self.context = distributed.current()
         if self.context.active and device in (None, 'cuda'):
@@ -104,13 +110,14 @@ class Trainer:
                                  f'{sum(v for _, v in sizes)}')
         elif len(train) == 0 or len(val) == 0:
             raise ValueError(f'{len(data)} trajectories are too few to split off validation')
-        if init is not None:
+        if self.structure is not None:
+            from tsr_koopman_ctrl.learning import block_koopman
+            mean, std = (None, None) if init is not None else self.normalisation(train)
+            model = block_koopman.build(config, self.structure, init, mean, std)
+        elif init is not None:
             model = deep_koopman.DeepKoopman.from_numpy(init, config)
         else:
-            flat = train.x.reshape(-1, train.x.shape[2])
-            mean, std = (distributed.mean_std(flat) if context.active
-                         else (flat.mean(0), flat.std(0)))
-            model = deep_koopman.DeepKoopman(config, mean, std + 1e-8)
+            model = deep_koopman.DeepKoopman(config, *self.normalisation(train))
         model.to(self.device)
         objective = distributed.wrap(model, self.device) if context.active else None
         optimiser = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
@@ -159,6 +166,13 @@ class Trainer:
             self.save_checkpoint(epoch + 1, model, optimiser, scheduler)
         model.load_state_dict({k: torch.as_tensor(v) for k, v in self.best_tensors.items()})
         return model
+
+    def normalisation(self, train):
+        """(mean, std) of the training states (over every rank under DDP)."""
+        flat = train.x.reshape(-1, train.x.shape[2])
+        mean, std = (distributed.mean_std(flat) if self.context.active
+                     else (flat.mean(0), flat.std(0)))
+        return mean, std + 1e-8
 
     def end_epoch(self, epoch, model, val, train_losses):
         model.eval()
@@ -228,7 +242,8 @@ def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, 
     """Write the model with its test metrics, controllability rank and provenance; `extra`:
     more metadata (a dict merged in). `train_data` needs only `provenance` and len()."""
     test = evaluate(model, test_data, trainer.device)
-    tensors = model.to_numpy()
+    # A structured model stores the A its parameters build, in the file's usual layout.
+    tensors = getattr(model, 'export_tensors', model.to_numpy)()
     metadata = {
         'metrics': {'test': test, 'validation_best': trainer.best,
                     'controllability_rank': lifted.controllability_rank(

@@ -5,9 +5,15 @@ dataset files (``--data FILE``, repeatable). A validation split is held out of t
 separate test set (another seed, never trained on) gives the metrics stored with the model.
 Each epoch prints the loss terms and the validation 30-step error; the best epoch is the saved
 model; ``<out>/checkpoint.pt`` lets ``--resume`` carry on after an interruption.
+
+``--init DIR`` fine-tunes a model (its weights, normalisation and config; the flags given
+override the config). ``--structure block`` trains `learning.block_koopman.BlockKoopman`, whose
+observables are stable by construction (what koopman_lqr needs; models/README.md,
+koopman_block); the file it writes is an ordinary model file.
 """
 
 import argparse
+import dataclasses
 import sys
 import time
 
@@ -42,13 +48,26 @@ def test_set(trajectories, seed):
     return data
 
 
-def config_from_args(args):
+def config_from_args(args, base=None):
+    """The defaults (or `base`, an init's config) with the flags given."""
     overrides = {'epochs': args.epochs, 'weight_equilibrium': args.weight_equilibrium,
                  'weight_one_step': args.weight_one_step,
                  'anchor_equilibrium': args.anchor_equilibrium or None,
                  'lift_dim': args.lift_dim, 'seed': args.seed, 'batch_size': args.batch_size,
                  'learning_rate': args.learning_rate}
-    return model_file.KoopmanConfig(**{k: v for k, v in overrides.items() if v is not None})
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if base is not None:
+        return dataclasses.replace(base, **overrides)
+    return model_file.KoopmanConfig(**overrides)
+
+
+def structure_from_args(args):
+    """None (the dense model) or the BlockStructure the flags ask for."""
+    if args.structure == 'dense':
+        return None
+    from tsr_koopman_ctrl.learning.block_koopman import BlockStructure
+    return BlockStructure(real_modes=args.real_modes, radius=args.radius, margin=args.margin,
+                          flat=not args.no_flat, observable_input=args.observable_input)
 
 
 def parser():
@@ -78,6 +97,22 @@ def parser():
     p.add_argument('--device', help='torch device (default: cuda if present, else cpu)')
     p.add_argument('--threads', type=int, help='torch CPU threads')
     p.add_argument('--resume', action='store_true', help='continue from <out>/checkpoint.pt')
+    p.add_argument('--init', help='model directory to fine-tune (its config, with the flags '
+                   'given)')
+    p.add_argument('--structure', choices=('dense', 'block'), default='dense',
+                   help="lifted A: 'dense' (the paper's) or 'block' (observables stable by "
+                   'construction; learning/block_koopman.py)')
+    p.add_argument('--real-modes', type=int, default=12,
+                   help='block, new model: real observable eigenvalues (the rest in pairs)')
+    p.add_argument('--radius', type=float, default=1.0,
+                   help='block: every observable eigenvalue inside |z| < radius')
+    p.add_argument('--margin', type=float, default=0.995,
+                   help='block, --init: observable eigenvalues beyond margin * radius are '
+                   'pulled in to there')
+    p.add_argument('--no-flat', action='store_true',
+                   help='block: observables Phi(x) - Phi(0), not flat to first order at x = 0')
+    p.add_argument('--observable-input', action='store_true',
+                   help='block: the input enters the observables directly (B[n:] learned)')
     p.add_argument('--quiet', action='store_true')
     return p
 
@@ -87,19 +122,30 @@ def main(argv=None):
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        config = config_from_args(args)
+        init, base = None, None
+        if args.init:
+            init, base, _ = model_file.load(args.init)
+        config = config_from_args(args, base)
+        structure = structure_from_args(args)
         data = load_data(args)
         test_data = test_set(args.test_trajectories, args.test_seed)
-        trainer = Trainer(config, args.out, args.device, progress=not args.quiet)
+        trainer = Trainer(config, args.out, args.device, progress=not args.quiet,
+                          structure=structure)
         start = time.perf_counter()
-        model = trainer.fit(data, resume=args.resume)
+        model = trainer.fit(data, resume=args.resume, init=init)
         seconds = time.perf_counter() - start
     except ValueError as error:
         print(f'train: {error}', file=sys.stderr)
         return 2
     given = sys.argv[1:] if argv is None else argv
     command = 'python -m tsr_koopman_ctrl.tools.train ' + ' '.join(given)
-    metadata = save_model(args.out, model, config, trainer, data, test_data, seconds, command)
+    extra = {}
+    if args.init:
+        extra['init'] = args.init
+    if structure is not None:
+        extra['structure'] = {**structure.to_dict(), 'real_modes': model.real_modes}
+    metadata = save_model(args.out, model, config, trainer, data, test_data, seconds, command,
+                          extra)
     metrics = metadata['metrics']
     print(f"saved {args.out}: best epoch {trainer.best['epoch']}, test 30-step summed MSE "
           f"{metrics['test']['summed_mse']:.4g}, controllability rank "

@@ -2,6 +2,7 @@
 
     python -m tsr_koopman_ctrl.tools.tune --law linear_lqr [--trials 60] [--jobs 2]
         [--storage out/tune/linear_lqr.journal | postgresql://...] [--swing-max 0.8]
+        [--fix SETTING=VALUE]
 
 The search space is each setting's `tune` entry in its law's Settings class (the one
 declaration). A trial closes the law on the dynamics module (step-identical to the DDS loop) from
@@ -12,6 +13,8 @@ default. The study lives in Optuna's storage: a journal file here (several proce
 --jobs starts them), a database URL where users have a server; running the command again resumes
 it up to --trials in total. At the end the best settings are scored on the held-out starts
 (`HELD_OUT_STARTS`), which the tuning never saw, and written to <out>/<study>.json and .md.
+`--fix` holds a setting out of the search: koopman_lqr's q only counts with state_weight
+'state', and a joint search samples that form a few times only (4 of 60 trials in docs/tuning).
 """
 
 import argparse
@@ -23,7 +26,7 @@ import time
 
 from tsr_koopman_ctrl.control import CONTROLLERS, make_controller
 from tsr_koopman_ctrl.control.registry import law_class
-from tsr_koopman_ctrl.control.settings import fields
+from tsr_koopman_ctrl.control.settings import fields, parse_value
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS, HELD_OUT_STARTS
 
 #: Score of a start that does not settle, halts or swings too far: twice the 20-tau run.
@@ -36,10 +39,13 @@ def tunable(law):
             fields(law_class(law).Settings) if meta.get('tune') is not None]
 
 
-def suggest(trial, law):
-    """Settings of a trial, sampled from each setting's `tune` entry."""
-    settings = {}
+def suggest(trial, law, fixed=None):
+    """Settings of a trial, sampled from each setting's `tune` entry; `fixed`: {setting: value}
+    held out of the search."""
+    settings = dict(fixed or {})
     for name, default, spec in tunable(law):
+        if name in settings:
+            continue
         if isinstance(spec, list) and spec and isinstance(spec[0], str):
             settings[name] = trial.suggest_categorical(name, spec)
         elif isinstance(default, tuple):
@@ -57,10 +63,12 @@ def number(trial, name, spec, integer=False):
     return trial.suggest_float(name, low, high, log=scale == 'log')
 
 
-def as_params(law, settings):
+def as_params(law, settings, fixed=None):
     """The inverse of `suggest`: Optuna parameters of given settings (to enqueue a trial)."""
     params = {}
     for name, default, spec in tunable(law):
+        if name in (fixed or {}):
+            continue
         value = settings.get(name, default)
         if isinstance(value, tuple):
             params.update({f'{name}_{i}': v for i, v in enumerate(value)})
@@ -86,7 +94,17 @@ def score(law, settings, starts, swing_max, steps):
 
 
 def study_name(args):
-    return args.study or f'{args.law}_swing{args.swing_max:g}'
+    fixed = ''.join(f'_{text.replace("=", "-")}' for text in args.fix)
+    return args.study or f'{args.law}{fixed}_swing{args.swing_max:g}'
+
+
+def fixed_settings(args):
+    """{setting: value} of the --fix options, checked against the law's settings."""
+    settings = law_class(args.law).Settings
+    pairs = [text.split('=', 1) for text in args.fix]
+    if any(len(pair) != 2 for pair in pairs):
+        raise ValueError(f'--fix takes SETTING=VALUE, got {args.fix}')
+    return {name: parse_value(settings, name, value) for name, value in pairs}
 
 
 def open_study(args):
@@ -110,11 +128,11 @@ def worker(args):
     from optuna.study import MaxTrialsCallback
     study = open_study(args)
     if len(study.trials) == 0 and args.worker == 0:
-        study.enqueue_trial(as_params(args.law, {}))     # the law's own settings first
+        study.enqueue_trial(as_params(args.law, {}, args.fixed))   # the law's own settings
     states = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL)
 
     def objective(trial):
-        settings = suggest(trial, args.law)
+        settings = suggest(trial, args.law, args.fixed)
         value, runs = score(args.law, settings, COMPARISON_STARTS, args.swing_max, args.steps)
         trial.set_user_attr('settings', {k: list(v) if isinstance(v, tuple) else v
                                          for k, v in settings.items()})
@@ -155,11 +173,11 @@ def report(args, study):
                 for k, v in best.user_attrs['settings'].items()}
     results = {}
     for label, starts in (('tuning', COMPARISON_STARTS), ('held_out', HELD_OUT_STARTS)):
-        for tag, values in (('default', {}), ('tuned', settings)):
+        for tag, values in (('default', dict(args.fixed)), ('tuned', settings)):
             mean, runs = score(args.law, values, starts, args.swing_max, args.steps)
             results[f'{label}_{tag}'] = {'mean_score': mean, 'runs': runs}
     summary = {'law': args.law, 'study': study_name(args), 'trials': finished(study),
-               'swing_max': args.swing_max, 'best_value': best.value,
+               'swing_max': args.swing_max, 'fixed': args.fix, 'best_value': best.value,
                'best_settings': {k: list(v) if isinstance(v, tuple) else v
                                  for k, v in settings.items()},
                'tuning_starts': [list(s) for s in COMPARISON_STARTS],
@@ -197,6 +215,9 @@ def parser():
     p.add_argument('--steps', type=int, default=2000)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--out', default=os.path.join('out', 'tune'))
+    p.add_argument('--fix', action='append', default=[], metavar='SETTING=VALUE',
+                   help='hold a setting at a value instead of tuning it (repeatable; e.g. '
+                   'state_weight=state for koopman_lqr)')
     p.add_argument('--worker', type=int, default=None, help=argparse.SUPPRESS)
     return p
 
@@ -205,6 +226,11 @@ def main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parser().parse_args(argv)
     args.storage = args.storage or os.path.join(args.out, study_name(args) + '.journal')
+    try:
+        args.fixed = fixed_settings(args)
+    except ValueError as error:
+        print(f'tune: {error}', file=sys.stderr)
+        return 2
     if args.worker is not None:
         worker(args)
         return 0

@@ -1,0 +1,62 @@
+"""The paper's Koopman-LQR on the shipped koopman_block model deploys the tether."""
+
+import numpy as np
+import pytest
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control import closed_loop, KoopmanLqr, make_controller, ObserverSettings
+from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, HELD_OUT_STARTS, run_figures,
+                                         settle_index)
+
+BARE = ObserverSettings(disturbance='none')
+#: The paper's own cost (Q' = I, R' = 15): config/untuned.yaml.
+PAPER_COST = {'state_weight': 'lifted', 'r': 15.0}
+
+
+def deploy(controller, x0, steps=2000):
+    states, u = closed_loop(controller, x0, steps)
+    assert len(states) == steps + 1, 'the state left the domain'
+    return run_figures(np.arange(steps + 1) * dynamics.PAPER_STEP, states, u), u
+
+
+@pytest.fixture(scope='module')
+def law():
+    return KoopmanLqr()   # the defaults: the shipped koopman_block, the tuned cost
+
+
+def test_the_default_is_the_block_model_and_its_gain_stabilises_it(law):
+    assert law.settings.model == 'koopman_block'
+    assert law.closed_loop_spectral_radius() < 1.0
+
+
+def test_only_the_state_block_has_unstable_modes(law):
+    """The observables are stable by construction: every |eig A| >= 1 is an eigenvalue of the
+    model's own linearisation at the target, the largest near the plant's 1.0128 per step."""
+    values = np.linalg.eigvals(law.model.A)
+    local = np.linalg.eigvals(law.model.local_linear_model()[0])
+    unstable = values[np.abs(values) >= 1.0]
+    assert unstable.size and all(np.min(np.abs(local - v)) < 1e-4 for v in unstable)
+    assert np.abs(values).max() == pytest.approx(1.0128, abs=2e-3)
+
+
+@pytest.mark.parametrize('observer', [BARE, None], ids=['bare', 'offset-free'])
+@pytest.mark.parametrize('x0', COMPARISON_STARTS + HELD_OUT_STARTS)
+def test_koopman_lqr_deploys_into_the_one_percent_zone(x0, observer):
+    figures, u = deploy(make_controller('koopman_lqr', observer=observer), x0)
+    assert figures['settle_tau'] is not None and figures['settle_tau'] < 6.5, figures
+    assert figures['swing'] < 0.8
+    assert np.all((u >= 0.0) & (u <= 5.0))
+
+
+@pytest.mark.parametrize('x0', COMPARISON_STARTS)
+def test_the_papers_own_cost_deploys_too(x0):
+    figures, u = deploy(KoopmanLqr(**PAPER_COST), x0)
+    assert figures['settle_tau'] is not None and figures['settle_tau'] < 6.5, figures
+    assert np.all((u >= 0.0) & (u <= 5.0))
+
+
+@pytest.mark.parametrize('x0', COMPARISON_STARTS[:2])
+def test_the_dense_default_model_does_not_deploy(x0):
+    """Why koopman_lqr has a model of its own: on koopman_default it never settles."""
+    states, _ = closed_loop(KoopmanLqr(model='koopman_default', **PAPER_COST), x0, 2000)
+    assert len(states) < 2001 or settle_index(states) is None
