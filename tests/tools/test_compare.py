@@ -28,3 +28,15 @@ def test_compare_scores_every_start_with_the_loop_s_own_figures(tmp_path):
     assert rows[0]['settle_tau'] == first['settle_tau'] and rows[0]['swing'] == first['swing']
     assert rows[0]['compute_median_us'] > 0.0
     assert '| linear_lqr | untuned |' in (tmp_path / 'comparison.md').read_text()
+
+
+def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):
+    assert compare.main(['--laws', 'linear_lqr', 'koopman_mpc', '--presets', 'tuned',
+                         '--theta-max', '0.5', '--steps', '300', '--out', str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / 'comparison.json').read_text())
+    assert {r['law'] for r in rows} == {'koopman_mpc'} and len(rows) == 9
+    assert {r['preset'] for r in rows} == {'tuned, |theta| <= 0.5'}
+    from tsr_koopman_ctrl.control import make_controller
+    first = closed_loop_figures(make_controller('koopman_mpc', theta_max=0.5),
+                                COMPARISON_STARTS[0], 300)
+    assert rows[0]['swing'] == first['swing']

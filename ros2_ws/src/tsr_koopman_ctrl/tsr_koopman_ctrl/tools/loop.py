@@ -162,6 +162,7 @@ def plot_rounds(rounds, nominal, path, plant):
         bottom.axhline(nominal, color='0.5', ls='--', label='start model, nominal plant')
     bottom.set_ylabel('mean settle tau')
     bottom.set_xlabel('round (0: the start model)')
+    bottom.set_xticks(index)
     bottom.legend()
     for ax in (top, bottom):
         ax.grid(True, alpha=0.3)
