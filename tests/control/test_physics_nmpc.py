@@ -8,6 +8,7 @@ its constraints), compiled once per machine (about two minutes; cached under
 
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -16,12 +17,12 @@ from tsr_sim import dynamics
 from tsr_koopman_ctrl.control import closed_loop, make_controller, OffsetFree
 from tsr_koopman_ctrl.control import physics_nmpc
 from tsr_koopman_ctrl.control.physics_nmpc import PhysicsNmpc
-from tsr_koopman_ctrl.evaluation import PAPER_START, run_figures
+from tsr_koopman_ctrl.evaluation import frontier_tau, PAPER_START, run_figures
 
 #: Minimum-time deployment from the paper's start with 0 <= u <= 5 (docs/frontier.md), with
 #: |theta| <= 0.8 and with |theta| <= 0.4.
-FRONTIER_SWING_08 = 3.29
-FRONTIER_SWING_04 = 8.84
+FRONTIER_SWING_08 = frontier_tau(PAPER_START, 0.8)
+FRONTIER_SWING_04 = frontier_tau(PAPER_START, 0.4)
 
 
 def figures(states, u):
@@ -84,6 +85,9 @@ def test_without_a_compiler_cache_it_warns_once_and_solves_interpreted(tmp_path,
         law = PhysicsNmpc(horizon=1.0, interval=0.3)
     assert not law.compiled
     assert 0.0 <= law.compute(np.array(PAPER_START)) <= 5.0 and law.fallbacks == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')                  # a second law: no second warning
+        assert not PhysicsNmpc(horizon=1.0, interval=0.3).compiled
 
 
 @pytest.mark.parametrize('overrides, message', [

@@ -201,6 +201,31 @@ def test_overlapping_windows_start_every_stride_steps_and_never_span_a_gap(tmp_p
         recorded.read_windows(tmp_path / 'b', steps=10, stride=0)
 
 
+def test_validation_blocks_share_no_step_with_training_windows(tmp_path):
+    x, u, _ = loop_data(700, seed=2)
+    x[400:, (0, 2)] = 0.005                             # the last 300 states in the 1% zone
+    path = write_loop(tmp_path / 'b', x, u)
+    windows = recorded.read_windows(path, steps=10, stride=2, validation_fraction=0.25,
+                                    validation_offset=1)
+    # One run of 699 transitions; blocks of 30 steps; every 4th block from offset 1: blocks
+    # 2, 6, 10, 14, 18, 22 -> steps [60, 90), [180, 210), ...; 3 windows each.
+    blocks = [(30 * j, 30 * j + 30) for j in range(699 // 30) if (j + 1) % 4 == 3]
+    assert recorded.validation_blocks([(0, 699)], 10, 0.25, 1) == blocks
+    held = windows.validation
+    assert len(held) == windows.provenance['gaps']['validation_windows'] == 3 * len(blocks)
+    starts = [s for first, end in blocks for s in range(first, end - 9, 10)]
+    for window, start in zip(held.x, starts):
+        np.testing.assert_allclose(window, x[start:start + 11], atol=1e-12)
+    train_starts = [s for s in range(0, 699 - 10 + 1, 2)
+                    if not any(s < end and s + 10 > first for first, end in blocks)]
+    assert len(windows.data) == len(train_starts)
+    for window, start in zip(windows.data.x, train_starts):
+        np.testing.assert_allclose(window, x[start:start + 11], atol=1e-12)
+    # The in-zone commands, each step once (the anchor estimate): transitions 400..698.
+    zone = windows.provenance['zone_commands']
+    assert zone['steps'] == 299 and zone['sum'] == pytest.approx(u[400:699].sum(), rel=1e-12)
+
+
 def test_truncated_bag_is_recovered_with_a_warning(tmp_path):
     x, u, excitation = loop_data(600, seed=2)
     path = write_loop(tmp_path / 'b', x, u, excitation=excitation, chunk_size=4000)

@@ -222,22 +222,31 @@ def test_retrain_under_two_ranks_shares_out_the_bags_and_rank_0_writes(bags, tmp
 
 
 def test_anchor_from_data_is_the_mean_command_inside_the_zone():
-    from tsr_koopman_ctrl.learning.dataset import Dataset
     from tsr_koopman_ctrl.model import model_file
-    rng = np.random.default_rng(0)
-    x = rng.uniform(-0.5, 0.5, (20, 31, 4))
-    x[:10, :, (0, 2)] = rng.uniform(-0.009, 0.009, (10, 31, 2))   # 10 windows in the zone
-    u = np.where(np.arange(20)[:, None] < 10, 3.3, 1.0) + rng.normal(0, 0.01, (20, 30))
-    data = Dataset(x, u, 0.01, [])
-    config, record = retrain.anchored(model_file.KoopmanConfig(), 'data', data)
-    inside = (np.abs(x[:, :-1, 0]) <= 0.01) & (np.abs(x[:, :-1, 2]) <= 0.01)
-    assert record['samples'] == inside.sum() == 300
-    assert config.anchor_tension == pytest.approx(u[inside].mean(), abs=1e-12)
-    assert abs(config.anchor_tension - 3.3) < 0.002
-    few = Dataset(x[10:], u[10:], 0.01, [])             # no step in the zone: kept
+    bags = [{'steps': 120, 'sum': 120 * 3.30}, {'steps': 80, 'sum': 80 * 3.35}]
+    config, record = retrain.anchored(model_file.KoopmanConfig(), 'data', bags)
+    assert record['samples'] == 200
+    assert config.anchor_tension == pytest.approx((120 * 3.30 + 80 * 3.35) / 200, abs=1e-12)
+    few = [{'steps': 99, 'sum': 99 * 3.3}]               # fewer than 100 in-zone steps: kept
     assert retrain.anchored(model_file.KoopmanConfig(), 'data', few)[0].anchor_tension == 3.0
     assert retrain.anchored(model_file.KoopmanConfig(), 3.2, few)[0].anchor_tension == 3.2
     with pytest.raises(retrain.UsageError, match='anchor'):
         retrain.anchored(model_file.KoopmanConfig(), 7.0, few)
     with pytest.raises(retrain.UsageError, match='--anchor'):
         retrain.parse_anchor('zero')
+
+
+def test_fine_tuning_a_block_model_keeps_its_structure(bags, tmp_path, capsys):
+    """retrain --init koopman_block must not turn its stable observable block into a dense A."""
+    a, b, c = bags
+    out = tmp_path / 'block'
+    code, _, err = run(capsys, '--bags', a, b, '--held-out', c, '--init', 'koopman_block',
+                       '--out', out, '--epochs', '1', '--test-trajectories', '0')
+    assert code == 0, err
+    meta = json.loads((out / 'model.json').read_text())
+    assert meta['structure']['kind'] == 'block'
+    from tsr_koopman_ctrl.model import LiftedModel
+    # Stored in the usual basis, where A is not triangular; but only the state block's (at most
+    # 4) eigenvalues may lie on or outside the unit circle.
+    eigenvalues = np.abs(np.linalg.eigvals(LiftedModel.load(str(out)).A))
+    assert np.count_nonzero(eigenvalues >= 1.0) <= 4

@@ -74,30 +74,6 @@ class PhysicsNmpcSettings(LawSettings):
                             'steps)')
 
 
-def symbolic_derivative(x, u):
-    """The planar model of `tsr_sim.dynamics.derivative`, for CasADi expressions."""
-    import casadi as ca
-    theta, w, length, v = x[0], x[1] + 1.0, x[2] + 1.0, x[3]
-    theta_acc = -2.0 * v / length * w - 3.0 * ca.sin(theta) * ca.cos(theta)
-    length_acc = length * (w * w + 3.0 * ca.cos(theta) ** 2 - 1.0) - u
-    return ca.vertcat(x[1], theta_acc, v, length_acc)
-
-
-def symbolic_rk4(x, u, dt, substeps):
-    """RK4 over dt in `substeps` steps (u held), as `tsr_sim.dynamics.rk4_step`; returns the
-    end state and every substep's state."""
-    step = dt / substeps
-    path = []
-    for _ in range(substeps):
-        k1 = symbolic_derivative(x, u)
-        k2 = symbolic_derivative(x + 0.5 * step * k1, u)
-        k3 = symbolic_derivative(x + 0.5 * step * k2, u)
-        k4 = symbolic_derivative(x + step * k3, u)
-        x = x + step / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        path.append(x)
-    return x, path
-
-
 def cache_dir():
     """Where compiled NLPs are kept: $TSR_NMPC_CACHE, else $XDG_CACHE_HOME/tsr_koopman_ctrl
     (default ~/.cache/tsr_koopman_ctrl)."""
@@ -213,6 +189,8 @@ class PhysicsNmpc(Law):
 
         Also `predict(x0, u) -> nodes` (the same RK4, single shooting), `objective(w, p)` (to
         price the shifted previous plan) and `lqr_plan(x0, K)` (the cold start's guess)."""
+        # The model's symbolic RK4, shared with the minimum-time solver (one home).
+        from tsr_koopman_ctrl.evaluation.min_time import symbolic_rk4
         import casadi as ca
         steps = len(self.durations)
         x0, q, r, eps = ca.SX.sym('x0', 4), ca.SX.sym('q', 4), ca.SX.sym('r'), ca.SX.sym('eps')
@@ -223,8 +201,9 @@ class PhysicsNmpc(Law):
         x, shot, cost, defects, predicted = x0, x0, 0, [], []
         substeps = [max(int(np.ceil(d / (LEAD_SUBSTEP if j < len(LEAD_STEPS) else SUBSTEP)
                                     - 1e-9)), 1) for j, d in enumerate(self.durations)]
+        u_eq = dynamics.EQUILIBRIUM_TENSION
         for j, d in enumerate(self.durations):
-            cost += d * (self.stage_cost(q, x, eps) + r * (u[j] - 3.0) ** 2)
+            cost += d * (self.stage_cost(q, x, eps) + r * (u[j] - u_eq) ** 2)
             end, _ = symbolic_rk4(x, u[j], float(d), substeps[j])
             defects.append(end - nodes[:, j])
             x = nodes[:, j]
@@ -233,7 +212,7 @@ class PhysicsNmpc(Law):
         self.predict = ca.Function('predict', [x0, u], [ca.horzcat(*predicted)])
         gain, shot, held = ca.SX.sym('K', 4), x0, []
         for j, d in enumerate(self.durations):
-            held.append(ca.fmin(ca.fmax(3.0 - ca.dot(gain, shot), 0.0), self.u_max))
+            held.append(ca.fmin(ca.fmax(u_eq - ca.dot(gain, shot), 0.0), self.u_max))
             shot, _ = symbolic_rk4(shot, held[-1], float(d), substeps[j])
         self.lqr_plan = ca.Function('lqr_plan', [x0, gain], [ca.vertcat(*held)])
         cost += (ca.bilin(p, self.log_length(x), self.log_length(x))
@@ -273,9 +252,15 @@ class PhysicsNmpc(Law):
         if library is not None:
             try:
                 self.solver = ca.nlpsol('physics_nmpc', 'ipopt', library, options)
-            except RuntimeError as error:   # a damaged cache file: solve interpreted
-                warn_interpreted(f'cannot load {library} ({error})')
-                library = None
+            except RuntimeError:   # a damaged cache file: rebuilt once, else interpreted
+                pathlib.Path(library).unlink(missing_ok=True)
+                library = compiled(self.solver)
+                try:
+                    if library is not None:
+                        self.solver = ca.nlpsol('physics_nmpc', 'ipopt', library, options)
+                except RuntimeError as error:
+                    warn_interpreted(f'cannot load {library} ({error})')
+                    library = None
         self.compiled = library is not None
         self.cold_solver = ca.nlpsol('physics_nmpc_cold', 'ipopt', library or nlp, cold)
 

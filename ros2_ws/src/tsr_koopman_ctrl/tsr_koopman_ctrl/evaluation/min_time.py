@@ -186,7 +186,8 @@ def solve_nlp(x0, guess_states, guess_tensions, guess_duration, u_max, theta_max
         zone = np.tile([ZONE, np.inf, ZONE, np.inf], tail_intervals)
         lbx += [-zone, np.zeros(tail_intervals)]
         ubx += [zone, np.full(tail_intervals, u_high)]
-        x_init += [np.zeros(4 * tail_intervals), np.full(tail_intervals, 3.0)]
+        x_init += [np.zeros(4 * tail_intervals),
+                   np.full(tail_intervals, dynamics.EQUILIBRIUM_TENSION)]
     constraints = [ca.vertcat(*defects)]
     lbg, ubg = [np.zeros(constraints[0].numel())], [np.zeros(constraints[0].numel())]
     if theta_max is not None and path_theta:

@@ -13,7 +13,8 @@ scale the simulator recorded (RunInfo, through `bag.read_loop`). Windows never s
 missing step, a state without a command, a command the simulator refuses (non-finite,
 negative, over its `max_tension`), or a state that is non-finite, outside the domain or
 beyond |x| <= `max_abs_state` (the sampler's runaway bound) ends a gap-free run; each run is
-cut into non-overlapping windows from its start, and what was skipped is counted.
+cut into windows (one every `stride` steps; by default they do not overlap), and what was
+skipped is counted.
 
 A bag that cannot give trustworthy windows raises `BagDataError`, one line naming the bag:
 empty; no tsr_msgs/msg/TsrState or TensionCommand messages (wrong types); a TsrState or
@@ -44,6 +45,7 @@ from tsr_sim import dynamics, wire
 from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.bag.reader import bag_files, BagReader, COMPLETE
 from tsr_koopman_ctrl.bag.tsr_loop import read_loop, STATE_TYPE, TENSION_TYPE
+from tsr_koopman_ctrl.evaluation.figures import ZONE
 from tsr_koopman_ctrl.learning.dataset import concatenate, Dataset
 
 DEFAULT_STEPS = 30
@@ -69,6 +71,9 @@ class BagWindows:
     data: Dataset                  # its provenance is [provenance]
     provenance: dict
     warnings: list
+    #: Windows set aside for choosing the best epoch (`validation_fraction`), or None: they
+    #: share no step with `data`'s windows.
+    validation: Dataset = None
 
 
 def find_bags(paths):
@@ -238,14 +243,28 @@ def _runs(link):
     return list(zip(edges[::2].tolist(), (edges[1::2] - edges[::2]).tolist()))
 
 
+def validation_blocks(runs, steps, fraction, offset=0):
+    """(first, end) step ranges set aside for validation: each gap-free run is cut into blocks
+    of 3 windows and every round(1 / fraction)-th block, counted from `offset` (a bag's index,
+    so the bags of a set give up different phases of their deployments), is held out."""
+    if fraction <= 0.0:
+        return []
+    block, period = 3 * steps, max(2, round(1.0 / fraction))
+    return [(start + j * block, start + (j + 1) * block) for start, length in runs
+            for j in range(length // block) if (j + offset) % period == period - 1]
+
+
 def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=None,
-                 max_abs_state=MAX_ABS_STATE, stride=None):
+                 max_abs_state=MAX_ABS_STATE, stride=None, validation_fraction=0.0,
+                 validation_offset=0):
     """Cut one bag into `steps`-step windows, with every check (module docstring).
 
     A window starts every `stride` steps of a gap-free run (default `steps`: windows that do not
     overlap). Overlapping windows (stride < steps) show the model every phase of a deployment,
-    which fine-tuning on a few bags needs (docs/loop.md measures it); errors are reported on
-    non-overlapping windows.
+    which fine-tuning on a few bags needs (docs/loop/README.md measures it); errors are reported
+    on non-overlapping windows. `validation_fraction` > 0 sets blocks of every run aside
+    (`validation_blocks`) as non-overlapping validation windows (`BagWindows.validation`); no
+    training window touches them, so overlapping windows cannot leak into the epoch choice.
 
     `h` and `state_dim`, when given, are what the windows must have (the model's); a bag with
     another sample period or state size is refused. Returns BagWindows; raises BagDataError.
@@ -319,8 +338,20 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     link = contiguous & state_ok[:-1] & state_ok[1:] & accepted[:-1]
     runs = _runs(link)
     starts = [start + k for start, length in runs for k in range(0, length - steps + 1, stride)]
-    xs = np.array([x[s:s + steps + 1] for s in starts]).reshape(-1, steps + 1, x.shape[1])
-    us = np.array([u[s:s + steps] for s in starts]).reshape(-1, steps)
+    held = validation_blocks(runs, steps, validation_fraction, validation_offset)
+    starts = [s for s in starts if not any(s < end and s + steps > first for first, end in held)]
+    held_starts = [s for first, end in held for s in range(first, end - steps + 1, steps)]
+
+    def cut(where):
+        return (np.array([x[s:s + steps + 1] for s in where]).reshape(-1, steps + 1, x.shape[1]),
+                np.array([u[s:s + steps] for s in where]).reshape(-1, steps))
+    xs, us = cut(starts)
+
+    # The commands that held the plant in the 1% zone, each step once: retrain's anchor estimate.
+    theta, offset = x[:-1, dynamics.THETA], x[:-1, dynamics.LENGTH_OFFSET]
+    with np.errstate(invalid='ignore'):
+        in_zone = link & (np.abs(theta) <= ZONE) & (np.abs(offset) <= ZONE)
+    zone_commands = {'steps': int(in_zone.sum()), 'sum': float(u[:-1][in_zone].sum())}
 
     missing = np.diff(step)[~contiguous] - 1
     state_steps = set(state_topic.first)
@@ -337,6 +368,7 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
         'conflicting_commands': len(tension_topic.conflicts),
         'runs': len(runs), 'longest_run': max((n for _, n in runs), default=0),
         'transitions': int(link.sum()), 'windows': len(starts),
+        'validation_windows': len(held_starts),
     }
     skipped = {k: gaps[k] for k in ('missing_steps', 'missing_commands', 'refused_commands',
                                     'non_finite_states', 'out_of_bounds_states') if gaps[k]}
@@ -373,9 +405,11 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
         'plant': simulator, 'controller': controller.get('controller'),
         'model': controller.get('model'), 'excitation': controller.get('excitation'),
         'excited_steps': int(np.count_nonzero(excitation)), 'halted': loop.halted,
-        'recovered': read_report.recovered, 'gaps': gaps, 'run_info': loop.run_info})
+        'recovered': read_report.recovered, 'gaps': gaps, 'zone_commands': zone_commands,
+        'run_info': loop.run_info})
     data = Dataset(xs, us, bag_h, [provenance])
-    return BagWindows(bag, data, provenance, warnings)
+    validation = Dataset(*cut(held_starts), bag_h, [provenance]) if held_starts else None
+    return BagWindows(bag, data, provenance, warnings, validation)
 
 
 def read_bags(paths, **options):

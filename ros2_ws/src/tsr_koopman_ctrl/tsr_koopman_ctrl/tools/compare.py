@@ -70,12 +70,12 @@ def compare(laws, presets, steps, theta_max=None):
         [(s, 'held-out') for s in HELD_OUT_STARTS]
     if theta_max is not None:
         laws = [law for law in laws if 'theta_max' in law_class(law).Settings.__dataclass_fields__]
-    for name in presets:
+    for index, name in enumerate(presets):
         values = {} if name == 'tuned' else preset(name)
         for law in laws:
             label = name
-            if law in NOT_TUNED:
-                if name != 'tuned':
+            if law in NOT_TUNED:      # its defaults, once, whichever presets are asked for
+                if index != len(presets) - 1:
                     continue
                 label = 'defaults'
             settings = dict(values.get(law, {}))

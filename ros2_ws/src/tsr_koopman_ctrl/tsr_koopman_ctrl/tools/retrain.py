@@ -50,7 +50,7 @@ from tsr_koopman_ctrl.model import model_file, shipped
 
 FINE_TUNE_EPOCHS = 10
 #: Overlapping training windows: on the loop's few bags a window every 3 steps lowered the
-#: held-out error 3-4x where non-overlapping windows gave 1.5x (docs/loop.md).
+#: held-out error 3-4x where non-overlapping windows gave 1.5x (docs/loop/README.md).
 DEFAULT_STRIDE = 3
 #: Fewest in-zone steps for --anchor data to trust their mean command.
 MIN_ANCHOR_SAMPLES = 100
@@ -137,13 +137,19 @@ def _overrides(text):
 
 
 def configure(args):
-    """(config, init tensors or None, init record or None): the model to train and where from."""
-    init, tensors, base = None, None, model_file.KoopmanConfig()
+    """(config, init record or None, init tensors or None, init config, structure or None): the
+    model to train and where from. A fine-tuned block-structured model stays block-structured
+    (its structure is in its metadata)."""
+    init, tensors, base, structure = None, None, model_file.KoopmanConfig(), None
     if args.from_scratch and not args.init:
         raise UsageError('--from-scratch needs --init (without --init training is from scratch)')
     if args.init:
         path = shipped.resolve(args.init)
-        tensors, base, _ = model_file.load(path)
+        tensors, base, metadata = model_file.load(path)
+        kept = metadata.get('structure') or {}
+        if kept.get('kind') == 'block' and not args.from_scratch:
+            from tsr_koopman_ctrl.learning.block_koopman import BlockStructure
+            structure = BlockStructure(**{k: v for k, v in kept.items() if k != 'kind'})
         with open(os.path.join(path, model_file.WEIGHTS_FILE), 'rb') as weights:
             digest = hashlib.sha256(weights.read()).hexdigest()
         init = {'given': args.init, 'path': os.path.abspath(path), 'weights_sha256': digest,
@@ -171,7 +177,7 @@ def configure(args):
         config = model_file.KoopmanConfig.from_dict(values)
     except (TypeError, ValueError) as error:
         raise UsageError(f'bad config: {error}')
-    return config, init, tensors, base
+    return config, init, tensors, base, structure
 
 
 def parse_anchor(text):
@@ -184,19 +190,17 @@ def parse_anchor(text):
         raise UsageError(f"--anchor must be 'data', 'init' or a number, got {text!r}")
 
 
-def anchored(config, anchor, data, zone=0.01):
+def anchored(config, anchor, zone_commands):
     """(config with its anchor tension, a record of where it came from). 'data': the mean
-    command over the windows' steps whose state is inside the 1% zone (where the plant holds
-    the deployed equilibrium), over every rank's windows; kept as it is with fewer than
-    MIN_ANCHOR_SAMPLES such steps."""
+    command over the training bags' steps inside the 1% zone (where the plant holds the deployed
+    equilibrium; `zone_commands` are the bags' {'steps', 'sum'}, each step counted once); kept
+    as it is with fewer than MIN_ANCHOR_SAMPLES such steps."""
     if anchor == 'init':
         return config, {'source': 'init', 'tension': config.anchor_tension}
     if anchor != 'data':
         return with_anchor(config, anchor), {'source': 'given', 'tension': anchor}
-    x, u = np.asarray(data.x)[:, :-1], np.asarray(data.u)
-    inside = (np.abs(x[..., 0]) <= zone) & (np.abs(x[..., 2]) <= zone)
-    parts = distributed.gather((float(u[inside].sum()), int(inside.sum())))
-    total, count = sum(p[0] for p in parts), sum(p[1] for p in parts)
+    count = sum(int(z['steps']) for z in zone_commands)
+    total = sum(float(z['sum']) for z in zone_commands)
     if count < MIN_ANCHOR_SAMPLES:
         return config, {'source': f'init (only {count} in-zone steps to estimate from)',
                         'tension': config.anchor_tension, 'samples': count}
@@ -215,11 +219,13 @@ def with_anchor(config, tension):
 # --------------------------------------------------------------------------- data
 
 def _read(paths, options, indices):
-    """read_windows for the bags at `indices`: {index: BagWindows or the error's line}."""
+    """read_windows for the bags at `indices`: {index: BagWindows or the error's line}. Each
+    bag's index offsets its validation blocks (`recorded.validation_blocks`)."""
     results = {}
     for index in indices:
         try:
-            results[index] = recorded.read_windows(paths[index], **options)
+            offset = {'validation_offset': index} if options.get('validation_fraction') else {}
+            results[index] = recorded.read_windows(paths[index], **options, **offset)
         except recorded.BagDataError as error:
             results[index] = str(error)
     return results
@@ -308,7 +314,7 @@ def run(args, context, given):
         raise UsageError('--steps and --stride must be >= 1, --sampled-ratio and '
                          '--test-trajectories >= 0')
     anchor = parse_anchor(args.anchor)
-    config, init, init_tensors, init_config = configure(args)
+    config, init, init_tensors, init_config, structure = configure(args)
     fine_tune = init is not None and init['fine_tuned']
     if config.batch_size % context.world_size:
         raise UsageError(f'--batch-size {config.batch_size} does not split evenly over '
@@ -327,7 +333,8 @@ def run(args, context, given):
     # that every rank takes the same decisions (stop, skip) from the same facts.
     held_options = {'steps': args.steps, 'namespace': args.namespace, 'h': config.h,
                     'state_dim': config.state_dim}
-    options = dict(held_options, stride=args.stride)
+    options = dict(held_options, stride=args.stride,
+                   validation_fraction=config.validation_fraction)
     by_bags = len(train_paths) >= context.world_size
     mine = (distributed.shard(list(range(len(train_paths))), context) if by_bags
             else list(range(len(train_paths))))
@@ -359,15 +366,26 @@ def run(args, context, given):
     if not used:
         raise UsageError('no usable training bag')
 
-    parts = [local[i].data for i in sorted(local) if ('training', i) not in skipped]
+    mine_used = [i for i in sorted(local) if ('training', i) not in skipped]
+    parts = [local[i].data for i in mine_used]
     data = datasets.concatenate(parts) if parts else None
+    held_parts = [local[i].validation for i in mine_used if local[i].validation is not None]
+    validation = datasets.concatenate(held_parts) if held_parts else None
     if data is not None and not by_bags:
         data = data.subset(np.arange(context.rank, len(data), context.world_size))
+        if validation is not None:
+            validation = validation.subset(
+                np.arange(context.rank, len(validation), context.world_size))
+    # Validation blocks on every rank, or the trainer's random split on every rank (bags too
+    # short for a block of three windows).
+    if not all(distributed.gather(validation is not None and len(validation) > 0)):
+        validation = None
     agree(None if data is not None and len(data) else
           f'rank {context.rank} has no usable bag (bags are shared out one by one over the '
           'ranks: use fewer ranks)')
     recorded_windows = len(data)
-    config, anchor_record = anchored(config, anchor, data)
+    config, anchor_record = anchored(config, anchor,
+                                     [train[i]['provenance']['zone_commands'] for i in used])
     say(f"anchor tension {config.anchor_tension:.4f} ({anchor_record['source']})", flush=True)
     sampled = None
     if args.sampled_ratio > 0:
@@ -377,6 +395,7 @@ def run(args, context, given):
                 trajectories=count, steps=args.steps, h=config.h,
                 seed=args.data_seed + context.rank))
             data = datasets.concatenate([data, sampled])
+    total_validation = sum(distributed.gather(len(validation) if validation is not None else 0))
     counts = distributed.gather((recorded_windows, sampled.provenance if sampled else []))
     total_recorded = sum(n for n, _ in counts)
     sampled_provenance = [dict(p, ratio=args.sampled_ratio) for _, ps in counts for p in ps]
@@ -387,7 +406,7 @@ def run(args, context, given):
         + (f', {context.world_size} ranks sharing out {"bags" if by_bags else "windows"}'
            if context.active else ''), flush=True)
 
-    trainer = Trainer(config, device=args.device, progress=not args.quiet)
+    trainer = Trainer(config, device=args.device, progress=not args.quiet, structure=structure)
     tests, before = {}, {}
     if context.is_main:
         held_parts = [local_held[i].data for i in sorted(local_held)
@@ -414,7 +433,11 @@ def run(args, context, given):
                 flush=True)
 
     began = time.perf_counter()
-    model = trainer.fit(data, init=init_tensors if fine_tune else None)
+    say(f'validation (the best epoch): {total_validation} windows set aside from the training '
+        'bags, sharing no step with a training window' if total_validation else
+        'validation (the best epoch): a random split of the training windows (no bag had a '
+        'validation block)', flush=True)
+    model = trainer.fit(data, init=init_tensors if fine_tune else None, validation=validation)
     seconds = time.perf_counter() - began
     if not context.is_main:
         return 0
@@ -435,6 +458,7 @@ def run(args, context, given):
         'skipped': [{'kind': kind, 'bag': (train_paths if kind == 'training' else held_paths)[i],
                      'error': line} for kind, i, line in bad],
         'init': init, 'steps': args.steps, 'stride': args.stride, 'anchor': anchor_record,
+        'validation_windows': total_validation,
         'recorded_windows': total_recorded,
         'sampled_ratio': args.sampled_ratio, 'sampled_trajectories': total_sampled,
         'errors_before': before, 'errors_after': after,
@@ -445,7 +469,8 @@ def run(args, context, given):
                           total_recorded + total_sampled)
     test_data = tests.get('held_out', tests.get('table1'))
     save_model(args.out, model, config, trainer, summary, test_data, seconds, command,
-               extra={'retrain': retrain})
+               extra={'retrain': retrain, **({'structure': {
+                   **structure.to_dict(), 'real_modes': model.real_modes}} if structure else {})})
     kept = (' (no epoch lowered the validation error: the init\'s weights)'
             if trainer.best['epoch'] == 0 else '')
     say(f"saved {args.out}: best epoch {trainer.best['epoch']}{kept}, {seconds:.0f} s")

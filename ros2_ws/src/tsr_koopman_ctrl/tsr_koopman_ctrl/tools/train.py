@@ -21,7 +21,7 @@ import torch
 
 from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
-from tsr_koopman_ctrl.model import model_file
+from tsr_koopman_ctrl.model import model_file, shipped
 
 
 def load_data(args):
@@ -123,8 +123,8 @@ def main(argv=None):
         torch.set_num_threads(args.threads)
     try:
         init, base = None, None
-        if args.init:
-            init, base, _ = model_file.load(args.init)
+        if args.init:       # a directory or a shipped model's name, as retrain takes it
+            init, base, _ = model_file.load(shipped.resolve(args.init))
         config = config_from_args(args, base)
         structure = structure_from_args(args)
         data = load_data(args)
@@ -136,6 +136,10 @@ def main(argv=None):
         seconds = time.perf_counter() - start
     except ValueError as error:
         print(f'train: {error}', file=sys.stderr)
+        return 2
+    except RuntimeError as error:     # torch: an init whose shapes the config does not fit
+        print(f'train: cannot start from --init {args.init}: '
+              f'{str(error).splitlines()[0]}', file=sys.stderr)
         return 2
     given = sys.argv[1:] if argv is None else argv
     command = 'python -m tsr_koopman_ctrl.tools.train ' + ' '.join(given)

@@ -20,6 +20,7 @@ it up to --trials in total. At the end the best settings are scored on the held-
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -94,7 +95,9 @@ def score(law, settings, starts, swing_max, steps):
 
 
 def study_name(args):
-    fixed = ''.join(f'_{text.replace("=", "-")}' for text in args.fix)
+    # A fixed value may be a path ('model=models/x'): only safe characters go into file names.
+    fixed = ''.join('_' + re.sub(r'[^A-Za-z0-9.-]+', '-', text.replace('=', '-'))
+                    for text in args.fix)
     return args.study or f'{args.law}{fixed}_swing{args.swing_max:g}'
 
 
@@ -104,7 +107,11 @@ def fixed_settings(args):
     pairs = [text.split('=', 1) for text in args.fix]
     if any(len(pair) != 2 for pair in pairs):
         raise ValueError(f'--fix takes SETTING=VALUE, got {args.fix}')
-    return {name: parse_value(settings, name, value) for name, value in pairs}
+    fixed = {name: parse_value(settings, name, value) for name, value in pairs}
+    # Out of range, not a choice, the wrong length: one line now rather than 60 trials that
+    # all score the penalty.
+    settings(**fixed)
+    return fixed
 
 
 def open_study(args):
