@@ -46,8 +46,9 @@ def lifted_state_weight(model, settings):
 class KoopmanLqr(Law):
     """u_hat = u_hat_d - K (psi_x(x) - z_d), u = psi_uu^-1(u_hat / psi_ux(x)).
 
-    z_d = psi_x(0), u_hat_d = psi_u(0, 3); K from the discrete Riccati equation on the learned
-    (A, B) with Q' (settings) and R'; the lifted state is recomputed from each measurement.
+    z_d = psi_x(0), u_hat_d = psi_u(0, u_d) (u_d the model's anchor tension, 3 nominally); K
+    from the discrete Riccati equation on the learned (A, B) with Q' (settings) and R'; the
+    lifted state is recomputed from each measurement.
     """
 
     name = 'koopman_lqr'

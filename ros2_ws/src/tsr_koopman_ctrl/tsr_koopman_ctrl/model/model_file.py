@@ -55,11 +55,13 @@ class KoopmanConfig:
     weight_lifted: float = 1.0
     weight_controllability: float = 0.1
     #: Not in the paper: weight of L_eq, the drift of the lifted model at the known equilibrium
-    #: (x = 0, u = 3), per unit tau: z_d = psi_x(0) must be a fixed point for LQR about it.
+    #: (x = 0, u = anchor_tension), per unit tau: z_d = psi_x(0) must be a fixed point for LQR
+    #: about it.
     weight_equilibrium: float = 0.0
-    #: Not in the paper: Phi(x) - Phi(0) and psi_uu(u) - psi_uu(3) in place of Phi and psi_uu,
-    #: so z = 0 is psi_x(0) and u_hat = 0 is psi_u(0, 3): the known equilibrium is an exact
-    #: fixed point of the lifted model (no drift at the state LQR and MPC regulate to).
+    #: Not in the paper: Phi(x) - Phi(0) and psi_uu(u) - psi_uu(u_d) (u_d = anchor_tension) in
+    #: place of Phi and psi_uu, so z = 0 is psi_x(0) and u_hat = 0 is psi_u(0, u_d): the
+    #: known equilibrium is an exact fixed point of the lifted model (no drift at the state
+    #: LQR and MPC regulate to).
     anchor_equilibrium: bool = False
     #: The tension (N in the paper's dimensionless units) that holds the deployed equilibrium
     #: on the plant the model was trained for: 3 for the nominal plant; a model retrained on a
