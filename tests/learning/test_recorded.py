@@ -207,9 +207,9 @@ def test_validation_blocks_share_no_step_with_training_windows(tmp_path):
     path = write_loop(tmp_path / 'b', x, u)
     windows = recorded.read_windows(path, steps=10, stride=2, validation_fraction=0.25,
                                     validation_offset=1)
-    # One run of 699 transitions; blocks of 30 steps; every 4th block from offset 1: blocks
-    # 2, 6, 10, 14, 18, 22 -> steps [60, 90), [180, 210), ...; 3 windows each.
-    blocks = [(30 * j, 30 * j + 30) for j in range(699 // 30) if (j + 1) % 4 == 3]
+    # One run of 699 transitions; blocks of 30 steps; every 4th block from block 1: blocks
+    # 1, 5, 9, 13, 17, 21 -> steps [30, 60), [150, 180), ...; 3 windows each.
+    blocks = [(30 * j, 30 * j + 30) for j in range(1, 699 // 30, 4)]
     assert recorded.validation_blocks([(0, 699)], 10, 0.25, 1) == blocks
     held = windows.validation
     assert len(held) == windows.provenance['gaps']['validation_windows'] == 3 * len(blocks)

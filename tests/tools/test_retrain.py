@@ -95,10 +95,14 @@ def test_fine_tuning_records_bags_init_and_errors_before_and_after(init_model, b
     assert info['bags'][0]['messages'] == {'/tsr/excitation': 160, '/tsr/run_info': 2,
                                            '/tsr/state': 160, '/tsr/tension_cmd': 160}
     # 160 and 130 states: 159 and 129 transitions; a 30-step window starts every 3 steps
-    # (the default stride): starts 0..129 and 0..99. Held-out windows never overlap: 99 // 30.
-    assert [bag['windows'] for bag in info['bags']] == [44, 34]
+    # (the default stride): starts 0..129 and 0..99, but the first bag gives up its first
+    # 90-step block (3 windows) for validation, so its training windows start at 90..129. The
+    # second bag's blocks are not due (every 10th block from block 1). Held-out windows never
+    # overlap: 99 // 30.
+    assert [bag['windows'] for bag in info['bags']] == [14, 34]
+    assert info['validation_windows'] == 3
     assert info['stride'] == 3
-    assert info['recorded_windows'] == 78 and meta['data']['train_trajectories'] == 78
+    assert info['recorded_windows'] == 48 and meta['data']['train_trajectories'] == 48
     assert info['held_out'][0]['sha256'] == sha256_of(c) and info['held_out'][0]['windows'] == 3
     weights = (init_dir / 'weights.safetensors').read_bytes()
     assert info['init'] == {'given': str(init_dir), 'path': str(init_dir.resolve()),
@@ -166,7 +170,8 @@ def test_bad_bags_are_named_and_exit_2_or_skipped(bags, tmp_path, capsys):
 
 def test_from_scratch_with_a_config_and_a_sampled_mix(bags, init_model, tmp_path, capsys):
     a, b, c = bags
-    # --stride 30: non-overlapping windows, 5 + 4 of them.
+    # --stride 30: non-overlapping windows, 2 + 4 of them (the first bag's first three are
+    # its validation block).
     code, _, err = run(capsys, '--bags', a, b, '--held-out', c, '--out', tmp_path / 'm',
                        '--config-json', json.dumps({**TINY, 'epochs': 1}), '--stride', '30',
                        '--sampled-ratio', '2', '--test-trajectories', '0')
@@ -175,10 +180,10 @@ def test_from_scratch_with_a_config_and_a_sampled_mix(bags, init_model, tmp_path
     assert {k: meta['config'][k] for k in TINY} == TINY
     info = meta['retrain']
     assert info['init'] is None and info['errors_before'] == {'held_out': None}
-    assert info['sampled_ratio'] == 2.0 and 0 < info['sampled_trajectories'] <= 18
+    assert info['sampled_ratio'] == 2.0 and 0 < info['sampled_trajectories'] <= 12
     sampled = [p for p in meta['data']['train'] if p['source'] == 'sampled']
-    assert len(sampled) == 1 and sampled[0]['ratio'] == 2.0 and sampled[0]['trajectories'] == 18
-    assert meta['data']['train_trajectories'] == 9 + info['sampled_trajectories']
+    assert len(sampled) == 1 and sampled[0]['ratio'] == 2.0 and sampled[0]['trajectories'] == 12
+    assert meta['data']['train_trajectories'] == 6 + info['sampled_trajectories']
     # Fine-tuning cannot change the network; --from-scratch can.
     code, _, err = run(capsys, '--bags', a, '--init', init_model, '--out', tmp_path / 'n',
                        '--config-json', '{"lift_dim": 6}')
@@ -214,7 +219,9 @@ def test_retrain_under_two_ranks_shares_out_the_bags_and_rank_0_writes(bags, tmp
     assert [(tmp_path / f'rank{r}.code').read_text() for r in (0, 1)] == ['0', '0']
     assert (tmp_path / 'rank1.out').read_text() == (tmp_path / 'rank1.err').read_text() == ''
     printed = (tmp_path / 'rank0.out').read_text()
-    assert 'training on 78 recorded windows from 2 bags, 2 ranks sharing out bags' in printed
+    assert 'training on 48 recorded windows from 2 bags, 2 ranks sharing out bags' in printed
+    # Rank 1's bag has no validation block: every rank falls back to the random split.
+    assert 'a random split of the training windows' in printed
     info = json.loads((out / 'model.json').read_text())['retrain']
     assert (info['world_size'], info['sharding'], info['per_rank_batch']) == (2, 'bags', 16)
     assert [bag['sha256'] for bag in info['bags']] == [sha256_of(a), sha256_of(b)]

@@ -245,13 +245,14 @@ def _runs(link):
 
 def validation_blocks(runs, steps, fraction, offset=0):
     """(first, end) step ranges set aside for validation: each gap-free run is cut into blocks
-    of 3 windows and every round(1 / fraction)-th block, counted from `offset` (a bag's index,
-    so the bags of a set give up different phases of their deployments), is held out."""
+    of 3 windows and every round(1 / fraction)-th block is held out, the first being block
+    `offset` mod that period (a bag's index): the bags of a set give up different phases of
+    their deployments, the transient at the start among them, not only the settled end."""
     if fraction <= 0.0:
         return []
     block, period = 3 * steps, max(2, round(1.0 / fraction))
     return [(start + j * block, start + (j + 1) * block) for start, length in runs
-            for j in range(length // block) if (j + offset) % period == period - 1]
+            for j in range(length // block) if (j - offset) % period == 0]
 
 
 def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=None,
