@@ -33,7 +33,7 @@ class NodeProcess:
     """One node in its own process; stop() sends SIGINT, then SIGKILL after a grace period."""
 
     def __init__(self, package, exe, node_name, params=None, domain_id=None, log_path=None,
-                 extra_args=(), namespace=None, cwd=None):
+                 extra_args=(), namespace=None, cwd=None, env=None):
         self.name = node_name
         self.log_path = log_path
         self._tmp = tempfile.TemporaryDirectory(prefix=f'{node_name}-')
@@ -43,11 +43,11 @@ class NodeProcess:
         if params:
             cmd += ['--params-file', write_params(node_name, params, self._tmp.name)]
         cmd += list(extra_args)
-        env = dict(os.environ)
+        environment = dict(os.environ, **(env or {}))   # env: extra variables
         if domain_id is not None:
-            env['ROS_DOMAIN_ID'] = str(domain_id)
+            environment['ROS_DOMAIN_ID'] = str(domain_id)
         self._log = open(log_path, 'w') if log_path else None   # None: this console
-        self.process = subprocess.Popen(cmd, env=env, stdout=self._log,
+        self.process = subprocess.Popen(cmd, env=environment, stdout=self._log,
                                         stderr=subprocess.STDOUT, cwd=cwd)
 
     def log_tail(self, lines=10):
