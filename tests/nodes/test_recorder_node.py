@@ -82,3 +82,19 @@ def test_sigkill_after_the_flush_period_loses_nothing(ros, start_node, tmp_path)
     reader = BagReader(str(tmp_path / 'rec'))
     assert [msg.data for _, msg in reader.decoded()] == list(range(n))
     assert reader.report.recovered     # killed: no summary, but every chunk was written
+
+
+def test_a_matched_topic_that_stays_silent_is_logged_once(ros, start_node, tmp_path):
+    """The recorder cannot tell a silent publisher from a transport that delivers nothing (Fast
+    DDS shared memory after a kill -9): either way it says so, once, naming the topic."""
+    silent = '/test/silent'
+    start_recorder(start_node, tmp_path, topics=[TOPIC, silent],
+                   types=['std_msgs/msg/UInt64'] * 2, silence_warning=1.0)
+    quiet = ros.node.create_publisher(UInt64, silent, BURST_QOS)
+    ros.spin_until(lambda: quiet.get_subscription_count() > 0, timeout=20,
+                   what='the recorder to subscribe')
+    publish_burst(ros, 10)                               # the other topic is not silent
+    ros.spin_for(3.0)
+    log = (tmp_path / 'tsr_recorder.log').read_text()
+    assert log.count(f'no message on {silent} for 1 s although 1 publisher(s)') == 1, log
+    assert f'no message on {TOPIC}' not in log

@@ -90,8 +90,11 @@ class ControllerNode(Node):
         self.pub = self.create_publisher(TensionCommand, TENSION_TOPIC, LOOP_PUBLISHER_QOS)
         self.status_pub = self.create_publisher(ControllerStatus, CONTROLLER_STATUS_TOPIC,
                                                 LOOP_PUBLISHER_QOS)
-        self.excitation_pub = self.create_publisher(Excitation, EXCITATION_TOPIC,
-                                                    LOOP_PUBLISHER_QOS)
+        # Only an excited controller offers tsr/excitation: a publisher that never sends would
+        # look like a broken transport to the recorder's silence check.
+        self.excitation_pub = (self.create_publisher(Excitation, EXCITATION_TOPIC,
+                                                     LOOP_PUBLISHER_QOS)
+                               if self.excitation.active else None)
         self.create_publisher(RunInfo, RUN_INFO_TOPIC, LATCHED_QOS).publish(run_info_msg(
             self.get_fully_qualified_name(), 'controller', self.configuration(settings),
             self.get_clock().now().to_msg()))

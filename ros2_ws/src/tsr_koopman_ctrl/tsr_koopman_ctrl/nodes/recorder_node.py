@@ -11,6 +11,7 @@ import datetime
 import importlib
 import os
 import sys
+import time
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -68,6 +69,13 @@ class RecorderNode(Node):
         if self.writer.flush_period > 0.0:
             self.create_timer(min(0.2, self.writer.flush_period / 2.0), self.writer.flush_if_due)
         self.subscribed = {}
+        self.subscribed_at = {}        # topic -> monotonic time of its subscription
+        self.silence_warned = set()
+        self.silence_warning = declare(
+            self, 'silence_warning', 5.0, 'seconds: warn once per topic when publishers are '
+            'matched but no message has arrived for this long (0: never)', 0.0, 3600.0)
+        if self.silence_warning > 0.0:
+            self.create_timer(min(1.0, self.silence_warning / 2.0), self.check_silence)
         self.create_timer(declare(self, 'discovery_period', 0.2,
                                   'seconds between looks for new topics', 0.01, 60.0),
                           self.discover)
@@ -108,7 +116,25 @@ class RecorderNode(Node):
             message_class(type_name), topic,
             lambda data, t=topic: self.writer.write(t, data, self.get_clock().now().nanoseconds),
             profile, raw=True)
+        self.subscribed_at[topic] = time.monotonic()
         self.get_logger().info(f'recording {topic} [{type_name}]')
+
+    def check_silence(self):
+        """A matched topic that stays silent is logged once: its publisher sends nothing, or
+        the transport delivers nothing (Fast DDS shared memory to a recorder started right
+        after one was killed -9 on this host: README, Reliability)."""
+        now = time.monotonic()
+        for topic, subscription in self.subscribed.items():
+            publishers = subscription.get_publisher_count()
+            if (topic in self.silence_warned or self.writer.topic_counts.get(topic)
+                    or not publishers or now - self.subscribed_at[topic] < self.silence_warning):
+                continue
+            self.silence_warned.add(topic)
+            self.get_logger().warning(
+                f'no message on {topic} for {self.silence_warning:g} s although {publishers} '
+                'publisher(s) are matched: a silent publisher, or a transport that delivers '
+                'nothing (after a kill -9 on this host, restart with '
+                'FASTDDS_BUILTIN_TRANSPORTS=UDPv4)')
 
     def close(self):
         self.writer.close()
