@@ -11,35 +11,14 @@ machine compiles its NLP (minutes, then cached); building is not timed.
 """
 
 import argparse
-import time
 
 import numpy as np
 from tsr_sim import dynamics
 from tsr_sim.units import Scale
 
-from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller
+from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller, TimedLaw
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings
 from tsr_koopman_ctrl.evaluation import PAPER_START
-
-
-class Timed:
-    """A law whose compute calls are timed (s); delegates everything else."""
-
-    def __init__(self, law):
-        self.law, self.times = law, []
-
-    def __getattr__(self, name):
-        return getattr(self.law, name)
-
-    def reset(self):
-        self.law.reset()
-        self.times = []
-
-    def compute(self, x):
-        start = time.perf_counter()
-        u = self.law.compute(x)
-        self.times.append(time.perf_counter() - start)
-        return u
 
 
 def main():
@@ -54,9 +33,9 @@ def main():
     period_us = Scale().tau_to_seconds(h) * 1e6   # of flight, at the paper's orbit rate
     rows = []
     for name in args.laws:
-        law = Timed(make_controller(name, observer=observer))
+        law = TimedLaw(make_controller(name, observer=observer))
         closed_loop(law, PAPER_START, args.steps)
-        times = np.array(law.times) * 1e6
+        times = np.array(law.seconds) * 1e6
         rows.append((name, np.median(times), np.percentile(times, 99), times.max(),
                      getattr(law, 'fallbacks', 0)))
     base = next((r[1] for r in rows if r[0] == 'linear_lqr'), None)

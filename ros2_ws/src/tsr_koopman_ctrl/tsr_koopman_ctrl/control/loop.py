@@ -5,6 +5,8 @@ sensor noise), and the state and the command pass through SI units as on the wir
 deployed here and over DDS in lockstep sees the same numbers.
 """
 
+import time
+
 import numpy as np
 from tsr_sim import dynamics
 from tsr_sim.plant import config_from_parameters, Plant, Status
@@ -52,3 +54,24 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
         tensions.append(u)
         states.append(sim.state.copy())
     return np.array(states), np.array(tensions)
+
+
+class TimedLaw:
+    """A law whose compute() calls are timed (`seconds`, wall clock, one per call; cleared by
+    reset()); everything else is the law's."""
+
+    def __init__(self, law):
+        self.law, self.seconds = law, []
+
+    def __getattr__(self, name):
+        return getattr(self.law, name)
+
+    def reset(self):
+        self.law.reset()
+        self.seconds = []
+
+    def compute(self, x):
+        start = time.perf_counter()
+        u = self.law.compute(x)
+        self.seconds.append(time.perf_counter() - start)
+        return u

@@ -11,9 +11,15 @@ from tsr_koopman_ctrl.evaluation.frontier import frontier_tau
 ZONE = 0.01
 
 
+def in_zone(states, zone=ZONE):
+    """Which states (..., n) lie in the zone: |theta| <= zone and |l - 1| <= zone."""
+    states = np.asarray(states)
+    return (np.abs(states[..., THETA]) <= zone) & (np.abs(states[..., LENGTH_OFFSET]) <= zone)
+
+
 def settle_index(states, zone=ZONE):
     """First index from which the state stays in the zone to the end; None if it never does."""
-    inside = (np.abs(states[:, THETA]) <= zone) & (np.abs(states[:, LENGTH_OFFSET]) <= zone)
+    inside = in_zone(states, zone)
     if not inside[-1]:
         return None
     outside = np.flatnonzero(~inside)

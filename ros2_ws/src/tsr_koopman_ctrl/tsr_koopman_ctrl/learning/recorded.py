@@ -45,7 +45,7 @@ from tsr_sim import dynamics, wire
 from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.bag.reader import bag_files, BagReader, COMPLETE
 from tsr_koopman_ctrl.bag.tsr_loop import read_loop, STATE_TYPE, TENSION_TYPE
-from tsr_koopman_ctrl.evaluation.figures import ZONE
+from tsr_koopman_ctrl.evaluation.figures import in_zone
 from tsr_koopman_ctrl.learning.dataset import concatenate, Dataset
 
 DEFAULT_STEPS = 30
@@ -349,10 +349,9 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     xs, us = cut(starts)
 
     # The commands that held the plant in the 1% zone, each step once: retrain's anchor estimate.
-    theta, offset = x[:-1, dynamics.THETA], x[:-1, dynamics.LENGTH_OFFSET]
     with np.errstate(invalid='ignore'):
-        in_zone = link & (np.abs(theta) <= ZONE) & (np.abs(offset) <= ZONE)
-    zone_commands = {'steps': int(in_zone.sum()), 'sum': float(u[:-1][in_zone].sum())}
+        holding = link & in_zone(x[:-1])
+    zone_commands = {'steps': int(holding.sum()), 'sum': float(u[:-1][holding].sum())}
 
     missing = np.diff(step)[~contiguous] - 1
     state_steps = set(state_topic.first)

@@ -254,5 +254,7 @@ def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, 
                  'train_trajectories': len(train_data), 'test_trajectories': len(test_data)},
         'training_seconds': round(seconds, 1), 'device': str(trainer.device),
         'command': command, 'versions': versions(), **(extra or {})}
+    if trainer.structure is not None:   # how A was built, so a fine-tune can build it again
+        metadata['structure'] = {**trainer.structure.to_dict(), 'real_modes': model.real_modes}
     model_file.save(out_dir, tensors, config, metadata)
     return metadata

@@ -12,41 +12,21 @@ comparison.json and a plot per start.
 """
 
 import argparse
-import json
 import os
 import sys
-import time
 
 import numpy as np
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller
+from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller, TimedLaw
 from tsr_koopman_ctrl.control.registry import law_class, preset
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
-
-
-class Timed:
-    """A law whose compute() is timed (wall clock, per call)."""
-
-    def __init__(self, law):
-        self.law, self.seconds = law, []
-
-    def __getattr__(self, name):
-        return getattr(self.law, name)
-
-    def reset(self):
-        self.law.reset()
-
-    def compute(self, x):
-        start = time.perf_counter()
-        u = self.law.compute(x)
-        self.seconds.append(time.perf_counter() - start)
-        return u
+from tsr_koopman_ctrl.tools.report import write_results
 
 
 def run(law, settings, start, steps):
-    timed = Timed(make_controller(law, **settings))
+    timed = TimedLaw(make_controller(law, **settings))
     states, tensions = closed_loop(timed, start, steps)
     row = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions,
                       start=start, halted=len(states) <= steps)
@@ -139,12 +119,8 @@ def main(argv=None):
     except ValueError as error:
         print(f'compare: {error}', file=sys.stderr)
         return 2
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, 'comparison.json'), 'w') as f:
-        json.dump(rows, f, indent=1)
     text = markdown(rows)
-    with open(os.path.join(args.out, 'comparison.md'), 'w') as f:
-        f.write(text)
+    write_results(args.out, 'comparison', rows, text)
     for index, (start, runs) in enumerate(loops.items()):
         plot_deployments({label: (tau, x, u) for label, (tau, x, u) in runs.items()},
                          os.path.join(args.out, f'x0_{index}.png'),

@@ -15,7 +15,6 @@ error on the held-out closed-loop data, the settle time, swing and integral tens
 """
 
 import argparse
-import json
 import os
 import sys
 
@@ -28,6 +27,7 @@ from tsr_koopman_ctrl.learning import multistep_errors
 from tsr_koopman_ctrl.learning.recorded import find_bags, read_bags, windows_dataset
 from tsr_koopman_ctrl.model import DEFAULT_MODEL, LiftedModel
 from tsr_koopman_ctrl.tools import deploy, retrain
+from tsr_koopman_ctrl.tools.report import write_results
 
 EXCITATION = ['excitation.kind=prbs', 'excitation.amplitude=0.3', 'excitation.hold=20']
 
@@ -140,10 +140,7 @@ def report(result, workdir):
                      f"{', '.join(cell(s) for s in r['settle_tau'])} | {r['swing']:.3f} | "
                      f"{r['tension_integral']:.2f} |")
     text = '\n'.join(lines) + '\n'
-    with open(os.path.join(workdir, 'report.md'), 'w') as f:
-        f.write(text)
-    with open(os.path.join(workdir, 'report.json'), 'w') as f:
-        json.dump(result, f, indent=1)
+    write_results(workdir, 'report', result, text)
     plot_rounds(rounds, nominal, os.path.join(workdir, 'rounds.png'), result['plant'])
     print(text)
 

@@ -8,7 +8,6 @@ step-identical to this one (tests/test_deploy.py), so the sweep needs no ROS.
 """
 
 import argparse
-import json
 import os
 import sys
 
@@ -20,6 +19,7 @@ from tsr_koopman_ctrl.control import KoopmanMpc
 from tsr_koopman_ctrl.control.koopman_lqr import load_model
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS
 from tsr_koopman_ctrl.model import DEFAULT_MODEL
+from tsr_koopman_ctrl.tools.report import write_results
 
 
 def run(model, horizon, x0, steps):
@@ -68,13 +68,9 @@ def main(argv=None):
     for path, horizon in tqdm(jobs, desc='model x horizon', file=sys.stdout):
         runs = [run(models[path], horizon, np.array(x0), args.steps) for x0 in COMPARISON_STARTS]
         results.append({'model': path, 'horizon': horizon, 'runs': runs})
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, 'mpc_sweep.json'), 'w') as f:
-        json.dump(results, f, indent=2)
     text = ('Settle time into the 1% zone in tau (swing max |theta| in rad), koopman_mpc '
             f'defaults but the horizon, {args.steps} steps.\n\n' + table(results) + '\n')
-    with open(os.path.join(args.out, 'mpc_sweep.md'), 'w') as f:
-        f.write(text)
+    write_results(args.out, 'mpc_sweep', results, text, indent=2)
     print(text)
     return 0
 

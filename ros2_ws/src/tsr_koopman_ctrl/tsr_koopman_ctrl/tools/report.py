@@ -35,12 +35,19 @@ def summary_table(rows):
     return '\n'.join(lines)
 
 
+def write_results(directory, name, data, text, indent=1):
+    """<name>.json (`data`) and <name>.md (`text`) in `directory`, made if needed: how every
+    tool leaves its results."""
+    os.makedirs(directory, exist_ok=True)
+    with open(os.path.join(directory, f'{name}.json'), 'w') as f:
+        json.dump(data, f, indent=indent)
+    with open(os.path.join(directory, f'{name}.md'), 'w') as f:
+        f.write(text)
+
+
 def write_report(run_dir, rows):
     """summary.json and summary.md in run_dir; prints the table."""
-    with open(os.path.join(run_dir, 'summary.json'), 'w') as f:
-        json.dump(rows, f, indent=2)
     table = summary_table(rows)
-    with open(os.path.join(run_dir, 'summary.md'), 'w') as f:
-        f.write(table + '\n')
+    write_results(run_dir, 'summary', rows, table + '\n', indent=2)
     print(table)
     print(f'[deploy] plots and summary in {run_dir}/', flush=True)

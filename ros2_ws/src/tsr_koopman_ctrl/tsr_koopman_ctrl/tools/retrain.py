@@ -104,8 +104,8 @@ def parser():
                    'overlapping; held-out windows never overlap)')
     p.add_argument('--anchor', default='data', metavar='data|init|TENSION',
                    help="equilibrium tension the model is anchored at: 'data' (the mean "
-                   "command of the training windows inside the 1%% zone), 'init' (the init "
-                   "model's or config's), or a number")
+                   "command over the training bags' steps inside the 1%% zone), 'init' (the "
+                   "init model's or config's), or a number")
     p.add_argument('--epochs', type=int,
                    help=f'epochs (fine-tuning: {FINE_TUNE_EPOCHS}; else the config\'s)')
     p.add_argument('--learning-rate', type=float,
@@ -469,8 +469,7 @@ def run(args, context, given):
                           total_recorded + total_sampled)
     test_data = tests.get('held_out', tests.get('table1'))
     save_model(args.out, model, config, trainer, summary, test_data, seconds, command,
-               extra={'retrain': retrain, **({'structure': {
-                   **structure.to_dict(), 'real_modes': model.real_modes}} if structure else {})})
+               extra={'retrain': retrain})
     kept = (' (no epoch lowered the validation error: the init\'s weights)'
             if trainer.best['epoch'] == 0 else '')
     say(f"saved {args.out}: best epoch {trainer.best['epoch']}{kept}, {seconds:.0f} s")

@@ -146,8 +146,6 @@ def main(argv=None):
     extra = {}
     if args.init:
         extra['init'] = args.init
-    if structure is not None:
-        extra['structure'] = {**structure.to_dict(), 'real_modes': model.real_modes}
     metadata = save_model(args.out, model, config, trainer, data, test_data, seconds, command,
                           extra)
     metrics = metadata['metrics']

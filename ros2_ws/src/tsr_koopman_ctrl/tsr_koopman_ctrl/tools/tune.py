@@ -18,7 +18,6 @@ it up to --trials in total. At the end the best settings are scored on the held-
 """
 
 import argparse
-import json
 import os
 import re
 import subprocess
@@ -29,6 +28,7 @@ from tsr_koopman_ctrl.control import CONTROLLERS, make_controller
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import fields, parse_value
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS, HELD_OUT_STARTS
+from tsr_koopman_ctrl.tools.report import write_results
 
 #: Score of a start that does not settle, halts or swings too far: twice the 20-tau run.
 PENALTY_TAU = 40.0
@@ -189,10 +189,6 @@ def report(args, study):
                                  for k, v in settings.items()},
                'tuning_starts': [list(s) for s in COMPARISON_STARTS],
                'held_out_starts': [list(s) for s in HELD_OUT_STARTS], 'results': results}
-    os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, study_name(args))
-    with open(path + '.json', 'w') as f:
-        json.dump(summary, f, indent=1)
     lines = [f"{args.law}: {summary['trials']} trials, best mean settle {best.value:.2f} tau on "
              f'the tuning starts (swing <= {args.swing_max:g} rad)',
              f"best settings: {summary['best_settings']}", '',
@@ -204,8 +200,7 @@ def report(args, study):
         label, tag = key.split('_', 1) if key.startswith('tuning') else ('held-out', key[9:])
         lines.append(f"| {label} | {tag} | {cells} | {result['mean_score']:.2f} |")
     text = '\n'.join(lines) + '\n'
-    with open(path + '.md', 'w') as f:
-        f.write(text)
+    write_results(args.out, study_name(args), summary, text)
     print(text)
 
 
