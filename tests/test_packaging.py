@@ -53,15 +53,18 @@ def test_manifest_declares_every_import_and_nothing_stale(package):
     assert stale == set(), f'{package}: in package.xml but never imported'
 
 
-def test_the_control_path_never_imports_torch():
-    """The controller node's imports and a koopman_mpc step on the shipped model."""
+def test_the_control_path_never_imports_torch_or_casadi():
+    """The controller node's imports and a koopman_mpc step on the shipped model: no torch
+    (training only), no casadi (loaded when a physics_nmpc is built, never by the registry)."""
     code = ('import sys\n'
             'import tsr_koopman_ctrl.nodes.controller_node\n'
             'from tsr_koopman_ctrl.control import make_controller\n'
             'from tsr_koopman_ctrl.learning import Edmd, Sindy, multistep_errors\n'
             'law = make_controller("koopman_mpc")\n'
             'law.compute([0.0, 0.0, -0.99, 0.5])\n'
-            'assert "torch" not in sys.modules, "torch imported"\n')
+            'make_controller("linear_lqr").compute([0.0, 0.0, -0.99, 0.5])\n'
+            'assert "torch" not in sys.modules, "torch imported"\n'
+            'assert "casadi" not in sys.modules, "casadi imported"\n')
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
 
