@@ -50,15 +50,21 @@ def test_sigint_right_after_a_burst_keeps_every_acknowledged_message(ros, start_
     assert not reader.report.recovered
 
 
-def start_loop(start_node, tmp_path, name, steps=100_000, flush_period=1.0):
-    """A lockstep loop (linear_lqr: the transport, not the law, sets the pace) and a recorder."""
+def start_loop(start_node, tmp_path, name, steps=100_000, flush_period=1.0, watchers=0,
+               namespace=None):
+    """A lockstep loop (linear_lqr: the transport, not the law, sets the pace) and a recorder.
+    `watchers`: the test's own subscriptions to the state, which the simulator must not count
+    as the recorder (it waits for controller, recorder and those before its first step).
+    `namespace`: a loop of its own, so that a recorder killed by an earlier run, whose
+    subscription stays in the graph until its DDS lease expires, is not counted either."""
     recorder = start_node('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
                           {'output_dir': str(tmp_path), 'bag_name': name,
-                           'flush_period': flush_period})
+                           'flush_period': flush_period}, namespace=namespace)
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
-               {'controller': 'linear_lqr', 'wait_for_subscribers': 2})
+               {'controller': 'linear_lqr', 'wait_for_subscribers': 2}, namespace=namespace)
     start_node('tsr_sim', 'sim_node', 'tsr_sim',
-               {'max_steps': steps, 'progress_every': 0, 'wait_for_subscribers': 2})
+               {'max_steps': steps, 'progress_every': 0,
+                'wait_for_subscribers': 2 + watchers}, namespace=namespace)
     return recorder
 
 
@@ -69,10 +75,11 @@ def test_kill_9_of_the_recorder_loses_at_most_the_flush_period(ros, start_node, 
     from tsr_msgs.msg import TsrState
     from tsr_sim import ros_io
     seen = []      # (wall time, step)
-    ros.node.create_subscription(TsrState, wire.STATE_TOPIC,
+    namespace = f'/kill{run}'
+    ros.node.create_subscription(TsrState, wire.resolve(wire.STATE_TOPIC, namespace),
                                  lambda m: seen.append((time.monotonic(), m.step)),
                                  ros_io.LOOP_QOS)
-    recorder = start_loop(start_node, tmp_path, f'kill{run}')
+    recorder = start_loop(start_node, tmp_path, f'kill{run}', watchers=1, namespace=namespace)
     ros.spin_until(lambda: len(seen) > 200, timeout=30, what='the loop to run')
     ros.spin_for(random.Random(run).uniform(1.5, 4.0))
     killed_at = time.monotonic()
@@ -152,7 +159,7 @@ def test_recorder_bag_of_a_killed_deployment_recovers_with_the_command(start_nod
     from tsr_sim import ros_io
     seen = []
     ros.node.create_subscription(TsrState, wire.STATE_TOPIC, seen.append, ros_io.LOOP_QOS)
-    recorder = start_loop(start_node, tmp_path, 'killed')
+    recorder = start_loop(start_node, tmp_path, 'killed', watchers=1)
     ros.spin_until(lambda: len(seen) > 200, timeout=30, what='the loop to run')
     ros.spin_for(2.0)
     recorder.kill()
