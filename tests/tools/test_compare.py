@@ -40,3 +40,21 @@ def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):
     first = closed_loop_figures(make_controller('koopman_mpc', theta_max=0.5),
                                 COMPARISON_STARTS[0], 300)
     assert rows[0]['swing'] == first['swing']
+
+
+def test_a_law_with_hand_picked_defaults_runs_once_unless_a_preset_names_it(
+        tmp_path, monkeypatch):
+    # physics_nmpc's role, played by the fast linear_lqr: 'tuned' and a preset without it give
+    # its defaults once; a preset that names it ('untuned' here) gives its own rows.
+    monkeypatch.setattr(compare, 'NOT_TUNED', {'linear_lqr'})
+    without = tmp_path / 'without.yaml'
+    without.write_text('/**:\n  ros__parameters:\n    koopman_mpc:\n      horizon: 4\n')
+    assert compare.main(['--laws', 'linear_lqr', '--presets', 'tuned', str(without), 'untuned',
+                         '--steps', '200', '--out', str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / 'comparison.json').read_text())
+    assert [r['preset'] for r in rows] == ['defaults'] * 9 + ['untuned'] * 9
+
+
+def test_the_ratio_tuned_preset_names_every_law():
+    from tsr_koopman_ctrl.control import CONTROLLERS
+    assert set(preset('tuned_ratio')) == set(CONTROLLERS)

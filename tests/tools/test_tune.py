@@ -16,7 +16,7 @@ def test_a_study_resumes_and_reports_on_held_out_starts(tmp_path):
     summary = json.loads((tmp_path / 'linear_lqr_swing0.8.json').read_text())
     assert summary['trials'] >= 4
     # The first trial is the law's own settings, so the best is never worse than the default.
-    default = summary['results']['tuning_default']['mean_score']
+    default = summary['results']['tuning_default']['score']
     assert summary['best_value'] <= default
     assert len(summary['results']['held_out_tuned']['runs']) == 5
     # The report's figures are the closed loop's own.
@@ -35,3 +35,16 @@ def test_the_search_space_comes_from_the_settings_classes():
 @pytest.mark.parametrize('settings, expected', [({'r': -1.0}, tune.PENALTY_TAU)])
 def test_a_law_that_cannot_be_built_scores_the_penalty(settings, expected):
     assert tune.score('linear_lqr', settings, COMPARISON_STARTS[:1], 0.8, 100)[0] == expected
+
+
+def test_the_ratio_objectives_score_the_frontier_ratio_at_each_runs_swing():
+    starts = COMPARISON_STARTS[:2]
+    mean, runs = tune.score('linear_lqr', {}, starts, 0.8, 1000, 'ratio')
+    worst, _ = tune.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio')
+    # Recomputed from the frontier table directly, not from the figures' own ratio.
+    from tsr_koopman_ctrl.evaluation.frontier import frontier_tau
+    ratios = [r['settle_tau'] / frontier_tau(s, r['swing']) for s, r in zip(starts, runs)]
+    assert mean == pytest.approx(sum(ratios) / 2) and worst == pytest.approx(max(ratios))
+    assert worst > mean
+    # A swing bound the runs break scores the ratio penalty, not the settle one.
+    assert tune.score('linear_lqr', {}, starts, 0.1, 1000, 'ratio')[0] == tune.PENALTY_RATIO

@@ -178,12 +178,19 @@ class LiftedModel:
         gain = float(self.psi_ux(x)) if input_gain is None else input_gain
         return self.input_map.inverse(u_hat / gain, guess=guess)
 
-    def predict(self, x0, u):
+    def predict(self, x0, u, relift=False):
         """Roll the lifted system from states x0 (N, n) under tensions u (N, T): the states read
-        through C, (N, T + 1, n). The input gain uses the predicted state, as in training."""
+        through C, (N, T + 1, n). The input gain uses the predicted state, as in training.
+
+        `relift`: lift the predicted state again before every step, z_k = psi_x(x_k), so the
+        model serves as a one-step map x+ = C (A psi_x(x) + B psi_u(x, u)) instead of a linear
+        system in z. Slower (one lift per step); along the physics NMPC's bang-bang deployment
+        from the paper's start far more accurate beyond 30 steps (README, *What this shows*)."""
         z = self.psi_x(np.atleast_2d(x0))
         states = [z[:, :self.n]]
         for k in range(np.shape(u)[1]):
+            if relift and k:
+                z = self.psi_x(z[:, :self.n])
             z = z @ self.A.T + self.psi_u(z[:, :self.n], u[:, k])[:, None] * self.B.T
             states.append(z[:, :self.n])
         return np.stack(states, axis=1)
