@@ -53,8 +53,25 @@ def test_a_law_with_hand_picked_defaults_runs_once_unless_a_preset_names_it(
                          '--steps', '200', '--out', str(tmp_path)]) == 0
     rows = json.loads((tmp_path / 'comparison.json').read_text())
     assert [r['preset'] for r in rows] == ['defaults'] * 9 + ['untuned'] * 9
+    # ... and the untuned rows ran the untuned settings, not the defaults again.
+    assert all(a['swing'] != b['swing'] for a, b in zip(rows[:9], rows[9:]))
+    # A repeated preset runs once.
+    assert compare.main(['--laws', 'linear_lqr', '--presets', 'untuned', 'untuned',
+                         '--steps', '200', '--out', str(tmp_path)]) == 0
+    assert len(json.loads((tmp_path / 'comparison.json').read_text())) == 9
 
 
-def test_the_ratio_tuned_preset_names_every_law():
+def test_the_ratio_tuned_preset_holds_each_law_s_tuning_result():
+    from conftest import ROOT
     from tsr_koopman_ctrl.control import CONTROLLERS
-    assert set(preset('tuned_ratio')) == set(CONTROLLERS)
+    ratio_tuned = preset('tuned_ratio')
+    assert set(ratio_tuned) == set(CONTROLLERS)
+    for law, values in ratio_tuned.items():
+        fixed = '_state-weight-state' if law == 'koopman_lqr' else ''
+        record = ROOT / 'docs' / 'tuning' / f'{law}{fixed}_worst-ratio_swing0.8.json'
+        best = json.loads(record.read_text())['best_settings']
+        for name, value in best.items():
+            if isinstance(value, str):
+                assert values[name] == value
+            else:   # the file holds 4 significant digits
+                assert values[name] == pytest.approx(value, rel=5e-4), (law, name)

@@ -48,3 +48,24 @@ def test_the_ratio_objectives_score_the_frontier_ratio_at_each_runs_swing():
     assert worst > mean
     # A swing bound the runs break scores the ratio penalty, not the settle one.
     assert tune.score('linear_lqr', {}, starts, 0.1, 1000, 'ratio')[0] == tune.PENALTY_RATIO
+
+
+def test_a_study_keeps_its_objective_and_names_it(tmp_path, capsys):
+    args = ['--law', 'linear_lqr', '--steps', '300', '--out', str(tmp_path), '--trials', '1']
+    assert tune.main([*args, '--objective', 'worst-ratio']) == 0
+    assert (tmp_path / 'linear_lqr_worst-ratio_swing0.8.json').exists()
+    journal = str(tmp_path / 'linear_lqr_worst-ratio_swing0.8.journal')
+    # The same journal and study under another objective: one line, no trial run.
+    assert tune.main([*args, '--objective', 'settle', '--storage', journal,
+                      '--study', 'linear_lqr_worst-ratio_swing0.8']) == 1
+    assert 'was tuned on --objective worst-ratio, not settle' in capsys.readouterr().err
+
+
+def test_the_swing_objective_scores_the_largest_swing_of_settled_runs():
+    starts = COMPARISON_STARTS[:2]
+    value, runs = tune.score('linear_lqr', {}, starts, 0.1, 1000, 'swing')
+    assert value == max(r['swing'] for r in runs) and value > 0.1   # the bound plays no part
+    assert tune.score('linear_lqr', {'r': -1.0}, starts, 0.8, 100, 'swing')[0] == \
+        tune.PENALTY_SWING
+    # 30 steps settle nowhere: every start scores the penalty.
+    assert tune.score('linear_lqr', {}, starts, 0.8, 30, 'swing')[0] == tune.PENALTY_SWING

@@ -1,5 +1,6 @@
-"""The comparison: every law, untuned and tuned, from the comparison and the held-out starts,
-scored against the minimum-time frontier. ROS-free (the DDS loop is step-identical).
+"""The comparison: every law under each settings preset (untuned, tuned, tuned for the ratio)
+from the comparison and the held-out starts, scored against the minimum-time frontier.
+ROS-free (the DDS loop is step-identical).
 
     python -m tsr_koopman_ctrl.tools.compare [--laws ...] [--out docs/comparison]
 
@@ -54,7 +55,7 @@ def compare(laws, presets, steps, theta_max=None):
     if theta_max is not None:
         laws = [law for law in laws if 'theta_max' in law_class(law).Settings.__dataclass_fields__]
     defaults_shown = set()
-    for name in presets:
+    for name in dict.fromkeys(presets):     # each preset once, in the order given
         values = {} if name == 'tuned' else preset(name)
         for law in laws:
             label = name
@@ -71,7 +72,10 @@ def compare(laws, presets, steps, theta_max=None):
                 row, loop = run(law, settings, start, steps)
                 row.update(law=law, preset=label, start=list(start), starts=kind)
                 rows.append(row)
-                loops.setdefault(tuple(start), {})[f'{law} ({label})'] = loop
+                plotted = loops.setdefault(tuple(start), {})
+                # Untuned runs stay out of the plots: ten curves per panel are already many.
+                if os.path.splitext(os.path.basename(name))[0] != 'untuned':
+                    plotted[f'{law} ({label})'] = loop
                 print(f"{law} ({label}) from {list(start)}: settle {row['settle_tau']}, "
                       f"ratio {row['frontier_ratio']}", flush=True)
     return rows, loops
@@ -129,9 +133,7 @@ def main(argv=None):
     text = markdown(rows)
     write_results(args.out, 'comparison', rows, text)
     for index, (start, runs) in enumerate(loops.items()):
-        # Untuned runs left out of the plots: ten curves per panel are already many.
-        plot_deployments({label: loop for label, loop in runs.items() if '(untuned' not in label},
-                         os.path.join(args.out, f'x0_{index}.png'),
+        plot_deployments(runs, os.path.join(args.out, f'x0_{index}.png'),
                          title=f'TSR deployment from x0 = {list(start)}')
     print(text)
     return 0

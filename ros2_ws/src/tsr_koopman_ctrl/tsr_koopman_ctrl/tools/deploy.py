@@ -41,8 +41,9 @@ def parse_args(argv):
     parser.add_argument('--model', help='model directory or shipped model name for the '
                         'koopman_* laws (default: their `model` setting, koopman_default)')
     parser.add_argument('--preset', help="a settings preset for the laws ('untuned': "
-                        'config/untuned.yaml, the settings before tuning; or a parameter file); '
-                        '--set applies on top')
+                        "config/untuned.yaml, the settings before tuning; 'tuned_ratio': "
+                        'config/tuned_ratio.yaml, tuned for the frontier ratio; or a parameter '
+                        'file); --set applies on top')
     parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
                         help='a law setting (repeatable), e.g. koopman_mpc.horizon=8, the '
                         'observer (offset-free control, on by default): '

@@ -2,21 +2,24 @@
 
     python -m tsr_koopman_ctrl.tools.tune --law linear_lqr [--trials 60] [--jobs 2]
         [--storage out/tune/linear_lqr.journal | postgresql://...] [--swing-max 0.8]
-        [--fix SETTING=VALUE] [--objective settle|ratio|worst-ratio]
+        [--fix SETTING=VALUE] [--objective settle|ratio|worst-ratio|swing]
 
 The search space is each setting's `tune` entry in its law's Settings class (the one
 declaration). A trial closes the law on the dynamics module (step-identical to the DDS loop) from
 every tuning start (`evaluation.starts.COMPARISON_STARTS`) and scores, per --objective, the mean
 settle time into the 1% zone ('settle', the default), the mean frontier ratio ('ratio': settle
 time over the minimum time at the run's own swing, `evaluation.frontier`, so a law gains nothing
-by swinging wider) or the largest frontier ratio ('worst-ratio': the issue's targets are "from
-every start"); a start that does not settle, halts, or swings beyond --swing-max scores
-PENALTY_TAU (settle) or PENALTY_RATIO. The law's own settings are the first trial, so tuning
-never reports worse than the default. The study lives in Optuna's storage: a journal file here
-(several processes share it: --jobs starts them; a second command with another --seed adds
-workers), a database URL where users have a server; running the command again resumes it up to
---trials in total. At the end the best settings are scored on the held-out starts
-(`HELD_OUT_STARTS`), which the tuning never saw, and written to <out>/<study>.json and .md.
+by swinging wider), the largest frontier ratio ('worst-ratio': the issue's targets are "from
+every start") or the largest swing ('swing': can any setting hold a bound at all); a start
+that does not settle, halts, or swings beyond --swing-max scores PENALTY_TAU (settle) or
+PENALTY_RATIO, flat (the search gets no signal from how far a trial missed), and a study that
+never scored under it says so in its report. A study keeps the objective it was started with.
+The law's own settings are the first trial, so tuning never reports worse than the default.
+The study lives in Optuna's storage: a journal file here (several processes share it: --jobs
+starts them; a second command with another --seed adds workers), a database URL where users
+have a server; running the command again resumes it up to --trials in total. At the end the
+best settings are scored on the held-out starts (`HELD_OUT_STARTS`), which the tuning never
+saw, and written to <out>/<study>.json and .md.
 `--fix` holds a setting out of the search: koopman_lqr's q only counts with state_weight
 'state', and a joint search samples that form a few times only (4 of 60 trials in docs/tuning).
 """
@@ -38,10 +41,13 @@ from tsr_koopman_ctrl.tools.report import write_results
 PENALTY_TAU = 40.0
 #: The same for the ratio objectives: ten times the minimum time.
 PENALTY_RATIO = 10.0
+#: A run that does not settle under the 'swing' objective (a tumble is beyond pi anyway).
+PENALTY_SWING = 10.0
 #: objective -> (figure a start scores, its penalty, how the starts' scores combine)
 OBJECTIVES = {'settle': ('settle_tau', PENALTY_TAU, 'mean'),
               'ratio': ('frontier_ratio', PENALTY_RATIO, 'mean'),
-              'worst-ratio': ('frontier_ratio', PENALTY_RATIO, 'max')}
+              'worst-ratio': ('frontier_ratio', PENALTY_RATIO, 'max'),
+              'swing': ('swing', PENALTY_SWING, 'max')}
 
 
 def tunable(law):
@@ -99,7 +105,10 @@ def score(law, settings, starts, swing_max, steps, objective='settle'):
     runs, scores = [], []
     for start in starts:
         figures = closed_loop_figures(controller, start, steps)
-        ok = figures[figure] is not None and figures['swing'] <= swing_max
+        if figure == 'swing':   # how far it swings on the way, whatever the bound
+            ok = figures['settle_tau'] is not None
+        else:
+            ok = figures[figure] is not None and figures['swing'] <= swing_max
         scores.append(figures[figure] if ok else penalty)
         runs.append(figures)
     return (max(scores) if combine == 'max' else sum(scores) / len(scores)), runs
@@ -136,9 +145,17 @@ def open_study(args):
     else:
         os.makedirs(os.path.dirname(os.path.abspath(args.storage)), exist_ok=True)
         storage = JournalStorage(JournalFileBackend(args.storage))
-    return optuna.create_study(study_name=study_name(args), storage=storage,
-                               direction='minimize', load_if_exists=True,
-                               sampler=optuna.samplers.TPESampler(seed=args.seed + args.worker))
+    study = optuna.create_study(study_name=study_name(args), storage=storage,
+                                direction='minimize', load_if_exists=True,
+                                sampler=optuna.samplers.TPESampler(seed=args.seed + args.worker))
+    # A study holds one objective: settle times and ratios in one study would be compared.
+    recorded = study.user_attrs.get('objective')
+    if recorded is None:
+        study.set_user_attr('objective', args.objective)
+    elif recorded != args.objective:
+        raise ValueError(f'study {study_name(args)!r} was tuned on --objective {recorded}, '
+                         f'not {args.objective}')
+    return study
 
 
 def worker(args):
@@ -205,9 +222,14 @@ def report(args, study):
                                  for k, v in settings.items()},
                'tuning_starts': [list(s) for s in COMPARISON_STARTS],
                'held_out_starts': [list(s) for s in HELD_OUT_STARTS], 'results': results}
+    penalty = OBJECTIVES[args.objective][1]
     lines = [f"{args.law}: {summary['trials']} trials, best score {best.value:.3f} "
              f'({OBJECTIVE_TEXT[args.objective]}) on the tuning starts (swing <= '
-             f'{args.swing_max:g} rad)', f"best settings: {summary['best_settings']}", '',
+             f'{args.swing_max:g} rad)', f"best settings: {summary['best_settings']}", '']
+    if best.value >= penalty:
+        lines[-1:-1] = [f'No trial scored under the penalty ({penalty:g}) from every tuning '
+                        'start: the "best settings" are only the first such trial.']
+    lines += [
              '| starts | settings | settle tau per start (swing, frontier ratio) | score |',
              '|---|---|---|---|']
     for key, result in results.items():
@@ -222,7 +244,7 @@ def report(args, study):
 
 
 OBJECTIVE_TEXT = {'settle': 'mean settle tau', 'ratio': 'mean frontier ratio',
-                  'worst-ratio': 'largest frontier ratio'}
+                  'worst-ratio': 'largest frontier ratio', 'swing': 'largest swing [rad]'}
 
 
 def ratio_text(figures):
@@ -236,10 +258,12 @@ def parser():
     p.add_argument('--jobs', type=int, default=1, help='worker processes on the study')
     p.add_argument('--storage', help='journal file or database URL '
                    '(default: <out>/<study>.journal)')
-    p.add_argument('--study', help='study name (default: <law>[_<objective>]_swing<swing-max>)')
+    p.add_argument('--study', help='study name (default: <law>[_<fixed settings>]'
+                   '[_<objective>]_swing<swing-max>)')
     p.add_argument('--objective', choices=sorted(OBJECTIVES), default='settle',
                    help="what a trial minimises over the tuning starts: mean settle time, mean "
-                   "or largest frontier ratio at the run's swing")
+                   "or largest frontier ratio at the run's own swing, or the largest swing "
+                   "(a run that does not settle scores the penalty)")
     p.add_argument('--swing-max', type=float, default=0.8, help='largest |theta| a run may '
                    'reach and still count as settled [rad]')
     p.add_argument('--steps', type=int, default=2000)
@@ -267,7 +291,7 @@ def main(argv=None):
     args.worker = 0
     try:
         study = run_workers(args, argv)
-    except RuntimeError as error:
+    except (RuntimeError, ValueError) as error:
         print(f'tune: {error}', file=sys.stderr)
         return 1
     report(args, study)
