@@ -65,7 +65,8 @@ def test_the_ratio_tuned_preset_holds_each_law_s_tuning_result():
     from conftest import ROOT
     from tsr_koopman_ctrl.control import CONTROLLERS
     ratio_tuned = preset('tuned_ratio')
-    assert set(ratio_tuned) == set(CONTROLLERS)
+    # Every law but koopman_nmpc, tuned nowhere (~0.15 s a step).
+    assert set(ratio_tuned) == set(CONTROLLERS) - {'koopman_nmpc'}
     for law, values in ratio_tuned.items():
         fixed = '_state-weight-state' if law == 'koopman_lqr' else ''
         record = ROOT / 'docs' / 'tuning' / f'{law}{fixed}_worst-ratio_swing0.8.json'

@@ -132,6 +132,14 @@ def prediction_grid(h, horizon, interval):
     return np.r_[lead, np.full(rest, interval)]
 
 
+def shift_plan(plan, starts, durations, age):
+    """A plan's tensions (piecewise constant on the grid `starts`, `durations`) as seen `age`
+    tau after it was made, on the same grid (the last one held past the horizon)."""
+    mids = starts + 0.5 * durations + age
+    index = np.searchsorted(np.r_[starts[1:], np.inf], mids, side='right')
+    return plan[np.minimum(index, len(plan) - 1)]
+
+
 class PhysicsNmpc(Law):
     """Nonlinear MPC of the deployment on the exact planar model, solved by IPOPT every step.
 
@@ -292,11 +300,7 @@ class PhysicsNmpc(Law):
         self.last_failure = ''
 
     def shifted_plan(self, age):
-        """The last plan's tensions as seen `age` tau after it was made, on the prediction grid
-        (the last one held past the horizon)."""
-        mids = self.starts + 0.5 * self.durations + age
-        index = np.searchsorted(np.r_[self.starts[1:], np.inf], mids, side='right')
-        return self.plan[np.minimum(index, len(self.plan) - 1)]
+        return shift_plan(self.plan, self.starts, self.durations, age)
 
     def candidate(self, x, tensions):
         """A plan flown open loop from x: the decision vector (nodes, the slacks it needs) and

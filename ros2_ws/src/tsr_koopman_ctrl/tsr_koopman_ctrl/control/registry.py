@@ -3,12 +3,13 @@
 from tsr_koopman_ctrl.control.fractional_pd import FractionalOrderPd
 from tsr_koopman_ctrl.control.koopman_lqr import KoopmanLqr
 from tsr_koopman_ctrl.control.koopman_mpc import KoopmanMpc
+from tsr_koopman_ctrl.control.koopman_nmpc import KoopmanNmpc
 from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
 from tsr_koopman_ctrl.control.physics_nmpc import PhysicsNmpc
 
 CONTROLLERS = {law.name: law for law in (LinearisedLqr, FractionalOrderPd, KoopmanLqr,
-                                         KoopmanMpc, PhysicsNmpc)}
+                                         KoopmanMpc, KoopmanNmpc, PhysicsNmpc)}
 
 
 def law_class(name):

@@ -1,0 +1,210 @@
+"""Nonlinear MPC on the learned model, relifted every step, by real-time iteration.
+
+`koopman_mpc` rolls the lifted model as a linear system, which is accurate for ~30 steps and
+diverges beyond (README, *What this shows*); so its plans are short and it cannot plan like the
+physics NMPC. Relifted before every step, the same learned model is a one-step map
+x+ = C (A psi_x(x) + B psi_u(x, u)) that stays accurate over a whole deployment. This law plans
+on that map over the physics NMPC's grid and cost, and solves it the cheap way: one convex QP
+per step on the map linearised along the previous plan (real-time iteration, Diehl et al. 2005),
+instead of an NLP.
+
+Per step: the previous plan shifted by h (the first step: the linearised LQR law flown on the
+map); the map rolled from the measured state under it; each interval's sensitivities to its
+start state and tension by finite differences, all intervals in one batched network evaluation;
+then the QP in the plan's change du (condensed: the node states are affine in du):
+
+    min  sum_j d_j (q . t_j + r (u_j - 3)^2) + y_N' P y_N + 1e4 sum_j s_j
+    s.t. -t_j <= y_j <= t_j,  |theta_j| <= theta_max + s_j,  s_j >= 0,
+         0 <= u_j <= u_max,  |du_j| <= trust
+
+with y = [theta, theta', ln l, l'] linearised at the nodes (the physics NMPC's 1-norm through
+slacks t, exact instead of smoothed) and P the continuous LQR cost-to-go at the target. The
+plan moves by du and its first tension is flown. Solved by quadprog (dense Goldfarb-Idnani):
+DAQP cycles on this degenerate, LP-like QP (it failed on half the steps of a deployment from
+the paper's start, 2026-11-30), quadprog on none. A failed solve keeps the shifted plan and
+counts a fallback.
+"""
+
+import dataclasses
+from typing import ClassVar
+
+import numpy as np
+import scipy.linalg
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control.koopman_lqr import load_model
+from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.physics_nmpc import prediction_grid, shift_plan
+from tsr_koopman_ctrl.control.settings import LawSettings, setting
+from tsr_koopman_ctrl.model.shipped import DEFAULT_MODEL
+
+#: Finite-difference step of the sensitivities, the QP's regularisation of its variables (a
+#: strictly convex QP for quadprog) and the weight of the swing slacks: fixed by the first runs.
+DIFFERENCE_STEP = 1e-5
+REGULARISATION = 1e-2
+SLACK_WEIGHT = 1e4
+
+
+@dataclasses.dataclass(frozen=True)
+class KoopmanNmpcSettings(LawSettings):
+    law: ClassVar[str] = 'koopman_nmpc'
+    model: str = setting(DEFAULT_MODEL, 'model directory, or the name of a shipped model')
+    # The physics NMPC's grid and weights (hand-picked there; not tuned here: ~0.1 s a step).
+    horizon: float = setting(3.6, 'prediction horizon [tau]', low=0.2, high=20.0)
+    interval: float = setting(0.1, 'prediction interval after the four short lead ones [tau], '
+                              'a multiple of the step h', low=0.01, high=1.0)
+    theta_max: float = setting(0.8, 'bound on |theta| at every prediction node, soft with an '
+                               'exact penalty [rad]', low=0.01, high=3.2)
+    q: tuple = setting((10.0, 1.0, 10.0, 1.0), "stage weights on |.| of [theta, theta', ln l, "
+                       "l']", low=0.0, tune=(1e-1, 1e2, 'log'))
+    r: float = setting(0.1, 'stage weight on (u - 3)^2', low=1e-9, tune=(1e-3, 1e1, 'log'))
+    trust: float = setting(2.0, 'largest change of a planned tension per step (the QP trusts '
+                           'the linearisation that far)', low=1e-3, high=10.0)
+
+
+class KoopmanNmpc(Law):
+    """Real-time-iteration NMPC on the relifted learned model (module docstring)."""
+
+    name = 'koopman_nmpc'
+    Settings = KoopmanNmpcSettings
+
+    def __init__(self, settings=None, **kwargs):
+        super().__init__(settings, **kwargs)
+        s = self.settings
+        self.model = load_model(s.model)
+        self.durations = prediction_grid(self.h, s.horizon, s.interval)
+        self.counts = np.rint(self.durations / self.h).astype(int)
+        if not np.allclose(self.counts * self.h, self.durations) or np.any(self.counts < 1):
+            raise ValueError(f'koopman_nmpc.interval must be a multiple of h = {self.h:g}, got '
+                             f'{s.interval}')
+        self.starts = np.r_[0.0, np.cumsum(self.durations)[:-1]]
+        self.q = np.asarray(s.q, dtype=float)
+        a, b = dynamics.linearise()
+        self.terminal = scipy.linalg.solve_continuous_are(a, b, np.diag(self.q),
+                                                          np.atleast_2d(s.r))
+        unit = scipy.linalg.solve_continuous_are(a, b, np.eye(4), np.eye(1))
+        self.lqr_gain = (b.T @ unit)[0]
+        n = self.model.n
+        self.a_x, self.b_x = self.model.A[:n], self.model.B[:n, 0]
+        self.reset()
+
+    def reset(self):
+        super().reset()
+        self.plan = None
+        #: Steps since the plan was made (it ages when a solve fails).
+        self.plan_age = 0.0
+
+    def step(self, x, u):
+        """The relifted one-step map on a batch: x (B, n), u (B,) -> x+ (B, n)."""
+        m = self.model
+        return m.psi_x(x) @ self.a_x.T + (m.psi_ux(x) * m.input_map(u))[:, None] * self.b_x
+
+    def lqr_plan(self, x):
+        """The linearised LQR law (Q = I, R = 1) flown on the map over the grid: a first plan."""
+        plan, state = [], np.asarray(x, dtype=float)[None]
+        u_eq = dynamics.EQUILIBRIUM_TENSION
+        for count in self.counts:
+            plan.append(float(np.clip(u_eq - self.lqr_gain @ state[0], 0.0, self.u_max)))
+            for _ in range(count):
+                state = self.step(state, np.array([plan[-1]]))
+        return np.array(plan)
+
+    def rollout(self, x, plan):
+        """The node states (N + 1, n) of `plan` flown on the map from x."""
+        nodes, state = [x], x[None]
+        for count, u in zip(self.counts, plan):
+            for _ in range(count):
+                state = self.step(state, np.array([u]))
+            nodes.append(state[0])
+        return np.array(nodes)
+
+    def sensitivities(self, nodes, plan):
+        """(A_j, b_j): d x_{j+1} / d x_j (N, n, n) and / d u_j (N, n), by forward differences;
+        every interval and direction in one batch, stepped up to the longest interval."""
+        n_nodes, n = len(plan), self.model.n
+        batch = np.repeat(nodes[:-1], n + 2, axis=0)
+        tensions = np.repeat(plan, n + 2)
+        for k in range(n):
+            batch[k + 1::n + 2, k] += DIFFERENCE_STEP
+        tensions[n + 1::n + 2] += DIFFERENCE_STEP
+        counts = np.repeat(self.counts, n + 2)
+        for k in range(int(self.counts.max())):
+            active = counts > k
+            batch[active] = self.step(batch[active], tensions[active])
+        ends = batch.reshape(n_nodes, n + 2, n)
+        a = (ends[:, 1:n + 1] - ends[:, :1]).transpose(0, 2, 1) / DIFFERENCE_STEP
+        b = (ends[:, n + 1] - ends[:, 0]) / DIFFERENCE_STEP
+        return a, b
+
+    def node_gains(self, nodes, plan):
+        """(N, n, N): node j+1 moves by gains[j] @ du, to first order, when the plan moves by
+        du (the intervals' sensitivities chained; the start state is measured, fixed)."""
+        a, b = self.sensitivities(nodes, plan)
+        n_nodes = len(plan)
+        gains = np.zeros((n_nodes, self.model.n, n_nodes))
+        running = np.zeros((self.model.n, n_nodes))
+        for j in range(n_nodes):
+            running = a[j] @ running
+            running[:, j] += b[j]
+            gains[j] = running
+        return gains
+
+    def compute(self, x):
+        x = np.asarray(x, dtype=float)[:self.model.n]
+        plan = (self.lqr_plan(x) if self.plan is None else
+                shift_plan(self.plan, self.starts, self.durations, self.plan_age + self.h))
+        nodes = self.rollout(x, plan)
+        if not (np.all(np.isfinite(nodes)) and np.all(dynamics.in_domain(nodes))):
+            plan, nodes = self.lqr_plan(x), None     # the plan leaves the model's domain
+        du = None if nodes is None else self.solve(nodes, plan)
+        if du is None:
+            self.fallbacks += 1
+            self.plan_age = self.plan_age + self.h if self.plan is not None else 0.0
+            if self.plan is None or nodes is None:
+                self.plan, self.plan_age = plan, 0.0
+            return float(shift_plan(self.plan, self.starts, self.durations, self.plan_age)[0])
+        self.plan, self.plan_age = np.clip(plan + du, 0.0, self.u_max), 0.0
+        return float(self.plan[0])
+
+    def solve(self, nodes, plan):
+        """The QP of the module docstring: du, or None if quadprog fails."""
+        import quadprog
+        s, n_nodes = self.settings, len(plan)
+        gains = self.node_gains(nodes, plan)
+        states = nodes[1:]
+        length = np.maximum(1.0 + states[:, dynamics.LENGTH_OFFSET], 1e-6)
+        y = states.copy()
+        y[:, dynamics.LENGTH_OFFSET] = np.log(length)
+        y_gains = gains.copy()
+        y_gains[:, dynamics.LENGTH_OFFSET] /= length[:, None]
+        # Variables [du (N), t (4N), s (N)].
+        n_t = y.size
+        terminal = y_gains[-1]
+        hessian = REGULARISATION * np.eye(n_nodes + n_t + n_nodes)
+        hessian[:n_nodes, :n_nodes] += 2.0 * (s.r * np.diag(self.durations)
+                                              + terminal.T @ self.terminal @ terminal)
+        linear = np.r_[2.0 * (s.r * self.durations * (plan - dynamics.EQUILIBRIUM_TENSION)
+                              + terminal.T @ self.terminal @ y[-1]),
+                       (self.durations[:, None] * self.q[None, :]).ravel(),
+                       np.full(n_nodes, SLACK_WEIGHT)]
+        to_y = y_gains.reshape(n_t, n_nodes)
+        theta = gains[:, dynamics.THETA, :]
+        eye_t, eye_s = np.eye(n_t), np.eye(n_nodes)
+        none_t, none_s = np.zeros((n_t, n_nodes)), np.zeros((n_nodes, n_t))
+        # Rows r with r . v >= bound (quadprog's form).
+        rows = np.block([
+            [-to_y, eye_t, none_t], [to_y, eye_t, none_t],                   # t >= |y|
+            [-theta, none_s, eye_s], [theta, none_s, eye_s],                 # |theta| <= max + s
+            [np.eye(n_nodes), none_s, np.zeros((n_nodes, n_nodes))],         # du >= lower
+            [-np.eye(n_nodes), none_s, np.zeros((n_nodes, n_nodes))],        # du <= upper
+            [np.zeros((n_nodes, n_nodes + n_t)), eye_s]])                    # s >= 0
+        bounds = np.r_[y.ravel(), -y.ravel(),
+                       states[:, dynamics.THETA] - s.theta_max,
+                       -states[:, dynamics.THETA] - s.theta_max,
+                       np.maximum(-plan, -s.trust), -np.minimum(self.u_max - plan, s.trust),
+                       np.zeros(n_nodes)]
+        try:
+            solution = quadprog.solve_qp(hessian, -linear, rows.T, bounds, 0)[0]
+        except ValueError:    # quadprog: constraints inconsistent or matrix not positive definite
+            return None
+        return solution[:n_nodes]
