@@ -29,12 +29,13 @@ import dataclasses
 from typing import ClassVar
 
 import numpy as np
-import scipy.linalg
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control.koopman_lqr import load_model
 from tsr_koopman_ctrl.control.law import Law
-from tsr_koopman_ctrl.control.physics_nmpc import prediction_grid, shift_plan
+from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
+from tsr_koopman_ctrl.control.physics_nmpc import (
+    PhysicsNmpcSettings as Nmpc, prediction_grid, shift_plan)
 from tsr_koopman_ctrl.control.settings import LawSettings, setting
 from tsr_koopman_ctrl.model.shipped import DEFAULT_MODEL
 
@@ -49,15 +50,15 @@ SLACK_WEIGHT = 1e4
 class KoopmanNmpcSettings(LawSettings):
     law: ClassVar[str] = 'koopman_nmpc'
     model: str = setting(DEFAULT_MODEL, 'model directory, or the name of a shipped model')
-    # The physics NMPC's grid and weights (hand-picked there; not tuned here: ~0.1 s a step).
-    horizon: float = setting(3.6, 'prediction horizon [tau]', low=0.2, high=20.0)
-    interval: float = setting(0.1, 'prediction interval after the four short lead ones [tau], '
-                              'a multiple of the step h', low=0.01, high=1.0)
-    theta_max: float = setting(0.8, 'bound on |theta| at every prediction node, soft with an '
-                               'exact penalty [rad]', low=0.01, high=3.2)
-    q: tuple = setting((10.0, 1.0, 10.0, 1.0), "stage weights on |.| of [theta, theta', ln l, "
-                       "l']", low=0.0, tune=(1e-1, 1e2, 'log'))
-    r: float = setting(0.1, 'stage weight on (u - 3)^2', low=1e-9, tune=(1e-3, 1e1, 'log'))
+    # The physics NMPC's defaults (hand-picked there; not tuned here: ~0.1 s a step).
+    horizon: float = setting(Nmpc.horizon, 'prediction horizon [tau]', low=0.2, high=20.0)
+    interval: float = setting(Nmpc.interval, 'prediction interval after the four short lead '
+                              'ones [tau], a multiple of the step h', low=0.01, high=1.0)
+    theta_max: float = setting(Nmpc.theta_max, 'bound on |theta| at every prediction node, '
+                               'soft with an exact penalty [rad]', low=0.01, high=3.2)
+    q: tuple = setting(Nmpc.q, "stage weights on |.| of [theta, theta', ln l, l']", low=0.0,
+                       tune=(1e-1, 1e2, 'log'))
+    r: float = setting(Nmpc.r, 'stage weight on (u - 3)^2', low=1e-9, tune=(1e-3, 1e1, 'log'))
     trust: float = setting(2.0, 'largest change of a planned tension per step (the QP trusts '
                            'the linearisation that far)', low=1e-3, high=10.0)
 
@@ -79,13 +80,8 @@ class KoopmanNmpc(Law):
                              f'{s.interval}')
         self.starts = np.r_[0.0, np.cumsum(self.durations)[:-1]]
         self.q = np.asarray(s.q, dtype=float)
-        a, b = dynamics.linearise()
-        self.terminal = scipy.linalg.solve_continuous_are(a, b, np.diag(self.q),
-                                                          np.atleast_2d(s.r))
-        unit = scipy.linalg.solve_continuous_are(a, b, np.eye(4), np.eye(1))
-        self.lqr_gain = (b.T @ unit)[0]
-        n = self.model.n
-        self.a_x, self.b_x = self.model.A[:n], self.model.B[:n, 0]
+        self.terminal = continuous_lqr_gain(self.q, s.r)[1]
+        self.lqr_gain = continuous_lqr_gain(np.ones(4), 1.0)[0]
         self.reset()
 
     def reset(self):
@@ -94,11 +90,6 @@ class KoopmanNmpc(Law):
         #: Steps since the plan was made (it ages when a solve fails).
         self.plan_age = 0.0
 
-    def step(self, x, u):
-        """The relifted one-step map on a batch: x (B, n), u (B,) -> x+ (B, n)."""
-        m = self.model
-        return m.psi_x(x) @ self.a_x.T + (m.psi_ux(x) * m.input_map(u))[:, None] * self.b_x
-
     def lqr_plan(self, x):
         """The linearised LQR law (Q = I, R = 1) flown on the map over the grid: a first plan."""
         plan, state = [], np.asarray(x, dtype=float)[None]
@@ -106,7 +97,7 @@ class KoopmanNmpc(Law):
         for count in self.counts:
             plan.append(float(np.clip(u_eq - self.lqr_gain @ state[0], 0.0, self.u_max)))
             for _ in range(count):
-                state = self.step(state, np.array([plan[-1]]))
+                state = self.model.step(state, np.array([plan[-1]]))
         return np.array(plan)
 
     def rollout(self, x, plan):
@@ -114,7 +105,7 @@ class KoopmanNmpc(Law):
         nodes, state = [x], x[None]
         for count, u in zip(self.counts, plan):
             for _ in range(count):
-                state = self.step(state, np.array([u]))
+                state = self.model.step(state, np.array([u]))
             nodes.append(state[0])
         return np.array(nodes)
 
@@ -130,7 +121,7 @@ class KoopmanNmpc(Law):
         counts = np.repeat(self.counts, n + 2)
         for k in range(int(self.counts.max())):
             active = counts > k
-            batch[active] = self.step(batch[active], tensions[active])
+            batch[active] = self.model.step(batch[active], tensions[active])
         ends = batch.reshape(n_nodes, n + 2, n)
         a = (ends[:, 1:n + 1] - ends[:, :1]).transpose(0, 2, 1) / DIFFERENCE_STEP
         b = (ends[:, n + 1] - ends[:, 0]) / DIFFERENCE_STEP
@@ -159,9 +150,10 @@ class KoopmanNmpc(Law):
         du = None if nodes is None else self.solve(nodes, plan)
         if du is None:
             self.fallbacks += 1
-            self.plan_age = self.plan_age + self.h if self.plan is not None else 0.0
-            if self.plan is None or nodes is None:
+            if self.plan is None or nodes is None:   # fly the LQR plan just made
                 self.plan, self.plan_age = plan, 0.0
+            else:                                    # fly the previous plan on
+                self.plan_age += self.h
             return float(shift_plan(self.plan, self.starts, self.durations, self.plan_age)[0])
         self.plan, self.plan_age = np.clip(plan + du, 0.0, self.u_max), 0.0
         return float(self.plan[0])

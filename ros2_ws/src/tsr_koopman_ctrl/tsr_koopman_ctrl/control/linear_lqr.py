@@ -4,10 +4,10 @@ import dataclasses
 from typing import ClassVar
 
 import numpy as np
-import scipy.linalg
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
 from tsr_koopman_ctrl.control.settings import LawSettings, setting
 
 
@@ -33,11 +33,7 @@ class LinearisedLqr(Law):
 
     def __init__(self, settings=None, **kwargs):
         super().__init__(settings, **kwargs)
-        a, b = dynamics.linearise()
-        q = np.diag(np.asarray(self.settings.q, dtype=float))
-        r = np.atleast_2d(self.settings.r)
-        p = scipy.linalg.solve_continuous_are(a, b, q, r)
-        self.gain = np.linalg.solve(r, b.T @ p)[0]
+        self.gain = continuous_lqr_gain(self.settings.q, self.settings.r)[0]
 
     def compute(self, x):
         planar = np.asarray(x)[:dynamics.PLANAR_DIM]

@@ -1,7 +1,17 @@
-"""Discrete LQR and the MPC's prediction matrices: linear algebra the lifted laws share."""
+"""LQR gains and the MPC's prediction matrices: linear algebra the laws share."""
 
 import numpy as np
 import scipy.linalg
+from tsr_sim import dynamics
+
+
+def continuous_lqr_gain(q, r):
+    """K (4,) of u = 3 - K x for the plant linearised at x = 0, u = 3 (`dynamics.linearise`)
+    with Q = diag(q), R = r, and the CARE's P (the cost-to-go x'Px)."""
+    a, b = dynamics.linearise()
+    r = np.atleast_2d(float(r))
+    p = scipy.linalg.solve_continuous_are(a, b, np.diag(np.asarray(q, dtype=float)), r)
+    return np.linalg.solve(r, b.T @ p)[0], p
 
 
 def discrete_lqr_gain(a, b, q, r):

@@ -31,10 +31,10 @@ from typing import ClassVar
 import warnings
 
 import numpy as np
-import scipy.linalg
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
 from tsr_koopman_ctrl.control.settings import LawSettings, setting
 
 #: theta_max at or above this (a swing past pi is a tumble): no swing bound, a smaller NLP.
@@ -181,11 +181,9 @@ class PhysicsNmpc(Law):
         self.theta_bound = (np.inf if s.theta_max >= NO_SWING_BOUND
                             else s.theta_max - THETA_MARGIN)
         q = np.asarray(s.q, dtype=float)
-        a, b = dynamics.linearise()
-        terminal = scipy.linalg.solve_continuous_are(a, b, np.diag(q), np.atleast_2d(s.r))
+        terminal = continuous_lqr_gain(q, s.r)[1]
         self.weights = np.r_[q, s.r, terminal.ravel(order='F'), SLACK_WEIGHT, SMOOTHING]
-        unit = scipy.linalg.solve_continuous_are(a, b, np.eye(4), np.eye(1))
-        self.lqr_gain = (b.T @ unit)[0]
+        self.lqr_gain = continuous_lqr_gain(np.ones(4), 1.0)[0]
         self.build()
         self.reset()
 

@@ -24,9 +24,9 @@ import time
 
 import casadi as ca
 import numpy as np
-import scipy.linalg
 from tsr_sim import dynamics
 
+from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
 from tsr_koopman_ctrl.evaluation.figures import settle_index, ZONE
 
 #: Largest RK4 substep, and the largest fraction of the local time scale l / |l'| per substep.
@@ -86,9 +86,7 @@ def interval_fractions(intervals):
 
 def lqr_gain(weights):
     """Continuous LQR gain at x = 0, u = 3 for Q = diag(weights), R = 1."""
-    a, b = dynamics.linearise()
-    p = scipy.linalg.solve_continuous_are(a, b, np.diag(weights), np.eye(1))
-    return (b.T @ p)[0]
+    return continuous_lqr_gain(weights, 1.0)[0]
 
 
 def lqr_closed_loop(x0, weights, u_max=dynamics.TENSION_LIMIT, h=0.01, duration=40.0):

@@ -186,14 +186,23 @@ class LiftedModel:
         model serves as a one-step map x+ = C (A psi_x(x) + B psi_u(x, u)) instead of a linear
         system in z. Slower (one lift per step); along the physics NMPC's bang-bang deployment
         from the paper's start far more accurate beyond 30 steps (README, *What this shows*)."""
+        if relift:
+            states = [np.atleast_2d(np.asarray(x0, dtype=float))]
+            for k in range(np.shape(u)[1]):
+                states.append(self.step(states[-1], u[:, k]))
+            return np.stack(states, axis=1)
         z = self.psi_x(np.atleast_2d(x0))
         states = [z[:, :self.n]]
         for k in range(np.shape(u)[1]):
-            if relift and k:
-                z = self.psi_x(z[:, :self.n])
             z = z @ self.A.T + self.psi_u(z[:, :self.n], u[:, k])[:, None] * self.B.T
             states.append(z[:, :self.n])
         return np.stack(states, axis=1)
+
+    def step(self, x, u):
+        """The relifted one-step map on a batch, x (N, n), u (N,) -> x+ (N, n):
+        x+ = C (A psi_x(x) + B psi_u(x, u))."""
+        return (self.psi_x(x) @ self.A[:self.n].T
+                + self.psi_u(x, u)[:, None] * self.B[:self.n].T)
 
     def local_linear_model(self, x=None, eps=1e-6):
         """(J, B_x): the state part of the lifted model's one-step map linearised at x (default:

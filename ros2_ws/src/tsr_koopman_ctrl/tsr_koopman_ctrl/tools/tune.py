@@ -43,11 +43,12 @@ PENALTY_TAU = 40.0
 PENALTY_RATIO = 10.0
 #: A run that does not settle under the 'swing' objective (a tumble is beyond pi anyway).
 PENALTY_SWING = 10.0
-#: objective -> (figure a start scores, its penalty, how the starts' scores combine)
-OBJECTIVES = {'settle': ('settle_tau', PENALTY_TAU, 'mean'),
-              'ratio': ('frontier_ratio', PENALTY_RATIO, 'mean'),
-              'worst-ratio': ('frontier_ratio', PENALTY_RATIO, 'max'),
-              'swing': ('swing', PENALTY_SWING, 'max')}
+#: objective -> (figure a start scores, its penalty, how the starts' scores combine, the
+#: score's name in the report)
+OBJECTIVES = {'settle': ('settle_tau', PENALTY_TAU, 'mean', 'mean settle tau'),
+              'ratio': ('frontier_ratio', PENALTY_RATIO, 'mean', 'mean frontier ratio'),
+              'worst-ratio': ('frontier_ratio', PENALTY_RATIO, 'max', 'largest frontier ratio'),
+              'swing': ('swing', PENALTY_SWING, 'max', 'largest swing [rad]')}
 
 
 def tunable(law):
@@ -97,7 +98,7 @@ def as_params(law, settings, fixed=None):
 def score(law, settings, starts, swing_max, steps, objective='settle'):
     """(score over starts per `objective`, per-start figures), the law built as the node builds
     it (offset-free by default). A law that cannot be built scores the penalty everywhere."""
-    figure, penalty, combine = OBJECTIVES[objective]
+    figure, penalty, combine, _ = OBJECTIVES[objective]
     try:
         controller = make_controller(law, **settings)
     except ValueError as error:
@@ -222,9 +223,9 @@ def report(args, study):
                                  for k, v in settings.items()},
                'tuning_starts': [list(s) for s in COMPARISON_STARTS],
                'held_out_starts': [list(s) for s in HELD_OUT_STARTS], 'results': results}
-    penalty = OBJECTIVES[args.objective][1]
+    _, penalty, _, score_name = OBJECTIVES[args.objective]
     lines = [f"{args.law}: {summary['trials']} trials, best score {best.value:.3f} "
-             f'({OBJECTIVE_TEXT[args.objective]}) on the tuning starts (swing <= '
+             f'({score_name}) on the tuning starts (swing <= '
              f'{args.swing_max:g} rad)', f"best settings: {summary['best_settings']}", '']
     if best.value >= penalty:
         lines[-1:-1] = [f'No trial scored under the penalty ({penalty:g}) from every tuning '
@@ -241,10 +242,6 @@ def report(args, study):
     text = '\n'.join(lines) + '\n'
     write_results(args.out, study_name(args), summary, text)
     print(text)
-
-
-OBJECTIVE_TEXT = {'settle': 'mean settle tau', 'ratio': 'mean frontier ratio',
-                  'worst-ratio': 'largest frontier ratio', 'swing': 'largest swing [rad]'}
 
 
 def ratio_text(figures):
