@@ -29,6 +29,13 @@ TEST_SEED = 1_000_003
 EQUILIBRIUM_BOX_LOW = (-0.3, -0.3, -0.2, -0.3)
 EQUILIBRIUM_BOX_HIGH = (0.3, 0.3, 0.2, 0.3)
 
+#: Not in the paper: tether retrieval, l' < 0 along the whole length. A minimum-time deployment
+#: brakes hard and reels the tether back in (l' down to -0.9 with theta' up to 1.6 from the
+#: comparison starts); Table 1 has none of it and the equilibrium box only |l'| <= 0.3 near
+#: l = 1, so a model trained on those extrapolates exactly where a fast law flies.
+RETRIEVAL_BOX_LOW = (-1.0, -2.0, -0.99, -1.5)
+RETRIEVAL_BOX_HIGH = (1.0, 2.0, 0.0, 0.0)
+
 
 @dataclasses.dataclass(frozen=True)
 class SamplingConfig:

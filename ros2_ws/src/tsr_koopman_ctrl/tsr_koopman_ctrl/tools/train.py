@@ -33,6 +33,13 @@ def load_data(args):
         print(f'sampled {len(near)} trajectories near the equilibrium ({dropped} dropped)',
               flush=True)
         parts.append(near)
+    if args.retrieval_trajectories > 0:
+        retrieval, dropped = datasets.sample(datasets.SamplingConfig(
+            trajectories=args.retrieval_trajectories, seed=args.data_seed + 2,
+            state_low=datasets.RETRIEVAL_BOX_LOW, state_high=datasets.RETRIEVAL_BOX_HIGH))
+        print(f'sampled {len(retrieval)} retrieval trajectories ({dropped} dropped)',
+              flush=True)
+        parts.append(retrieval)
     if args.trajectories > 0:
         sampled, dropped = datasets.sample(datasets.SamplingConfig(
             trajectories=args.trajectories, seed=args.data_seed))
@@ -78,6 +85,9 @@ def parser():
                    help='trajectories to sample with the paper settings (0: none)')
     p.add_argument('--equilibrium-trajectories', type=int, default=0,
                    help='extra trajectories from a box around x = 0 (not in the paper)')
+    p.add_argument('--retrieval-trajectories', type=int, default=0,
+                   help="extra trajectories with the tether reeled in, l' < 0 (not in the "
+                   'paper)')
     p.add_argument('--weight-equilibrium', type=float,
                    help='weight of the equilibrium drift loss (not in the paper; default 0)')
     p.add_argument('--weight-one-step', type=float,
