@@ -40,6 +40,10 @@ def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):
     first = closed_loop_figures(make_controller('koopman_mpc', theta_max=0.5),
                                 COMPARISON_STARTS[0], 300)
     assert rows[0]['swing'] == first['swing']
+    # The bound's label keeps its table row in columns: every line as many cells as the head.
+    table = (tmp_path / 'comparison.md').read_text().split('\n\n')[0].splitlines()
+    assert '| tuned, \\|theta\\| <= 0.5 |' in table[2]
+    assert len({line.replace('\\|', '').count('|') for line in table}) == 1
 
 
 def test_a_law_with_hand_picked_defaults_runs_once_unless_a_preset_names_it(

@@ -85,6 +85,11 @@ def fmt(value, digits=2):
     return '-' if value is None else f'{value:.{digits}f}'
 
 
+def cell(text):
+    """A table cell: a '|' in it (the swing-bound label) escaped so it stays one column."""
+    return str(text).replace('|', '\\|')
+
+
 def markdown(rows):
     lines = ['| law | settings | starts | x0 | settle tau | swing [rad] | frontier tau | ratio | '
              'integral u dtau | max u | compute median / p99 [us] | fallbacks |',
@@ -92,11 +97,11 @@ def markdown(rows):
     for r in rows:
         settle = fmt(r['settle_tau']) if r['settle_tau'] is not None else (
             'left the domain' if r['halted'] else 'not reached')
-        lines.append(f"| {r['law']} | {r['preset']} | {r['starts']} | {r['start']} | {settle} | "
-                     f"{r['swing']:.3f} | {fmt(r['frontier_tau'])} | {fmt(r['frontier_ratio'])} "
-                     f"| {r['tension_integral']:.2f} | {r['tension_max']:.2f} | "
-                     f"{r['compute_median_us']:.0f} / {r['compute_p99_us']:.0f} | "
-                     f"{r['fallbacks']} |")
+        lines.append(f"| {r['law']} | {cell(r['preset'])} | {r['starts']} | {r['start']} | "
+                     f"{settle} | {r['swing']:.3f} | {fmt(r['frontier_tau'])} | "
+                     f"{fmt(r['frontier_ratio'])} | {r['tension_integral']:.2f} | "
+                     f"{r['tension_max']:.2f} | {r['compute_median_us']:.0f} / "
+                     f"{r['compute_p99_us']:.0f} | {r['fallbacks']} |")
     lines += ['', '| law | settings | settled (comparison + held-out) | frontier ratio, '
               'comparison starts | frontier ratio, held-out starts |', '|---|---|---|---|---|']
     keys = sorted({(r['law'], r['preset']) for r in rows}, key=lambda k: (k[1], k[0]))
@@ -108,7 +113,7 @@ def markdown(rows):
             ratios = [r['frontier_ratio'] for r in mine if r['starts'] == kind
                       and r['frontier_ratio'] is not None]
             return f'{min(ratios):.2f}..{max(ratios):.2f}' if ratios else '-'
-        lines.append(f'| {law} | {name} | {settled}/{len(mine)} | {span("comparison")} | '
+        lines.append(f'| {law} | {cell(name)} | {settled}/{len(mine)} | {span("comparison")} | '
                      f'{span("held-out")} |')
     return '\n'.join(lines) + '\n'
 
