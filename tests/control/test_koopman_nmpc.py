@@ -26,18 +26,31 @@ def test_the_condensed_gains_predict_the_relifted_rollout_to_first_order():
     assert errors[0] < 0.05 * 1e-2 * np.abs(gains @ du).max()
 
 
-@pytest.mark.parametrize('start, most_tau', [((0.0, 0.0, -0.99, 0.5), 3.6),
-                                             ((0.0, 0.0, -0.7, 0.0), 3.0)])
-def test_it_deploys_on_the_dynamics_module_near_the_physics_nmpc(start, most_tau):
-    """Bare (no observer) on the nominal plant from two comparison starts, 400 steps: into the
-    1% zone within `most_tau` (measured 3.46 and 2.92; the physics NMPC 3.55 and 2.52, the
-    tuned linear_lqr 4.98 and 4.22), swing within its 0.8 bound, no QP failure."""
+@pytest.mark.parametrize('start', [(0.0, 0.0, -0.99, 0.5), (0.0, 0.0, -0.95, 1.0)])
+def test_it_deploys_on_the_dynamics_module_within_1_3x_the_frontier(start):
+    """Bare (no observer) on the nominal plant, 400 steps, the shipped koopman_retrieval: into
+    the 1% zone within 1.3x the minimum time at the run's own swing (issue 14's target;
+    measured 1.03 and 1.19; on koopman_default, which never saw the tether reeled in, 1.05 and
+    1.54), swing within its 0.8 bound, no QP failure."""
     law = make_controller('koopman_nmpc', observer={'disturbance': 'none'})
     states, tensions = closed_loop(law, start, 400)
     figures = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions,
                           start=start)
-    assert figures['settle_tau'] is not None and figures['settle_tau'] <= most_tau
+    assert figures['frontier_ratio'] is not None and figures['frontier_ratio'] <= 1.3
     assert figures['swing'] <= 0.81 and law.fallbacks == 0
+
+
+def test_it_holds_a_swing_bound_of_0_4_on_the_plant():
+    """theta_max 0.4 from (0, 0, -0.7, 0), bare, 400 steps: the swing stays under the bound on
+    the plant (not only at the plan's nodes) and the settle time within 1.1x the 0.4-rad
+    frontier (measured: swing 0.397, 3.36 tau, 1.03x)."""
+    start = (0.0, 0.0, -0.7, 0.0)
+    law = make_controller('koopman_nmpc', theta_max=0.4, observer={'disturbance': 'none'})
+    states, tensions = closed_loop(law, start, 400)
+    figures = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions,
+                          start=start)
+    assert figures['swing'] <= 0.4
+    assert figures['frontier_ratio'] is not None and figures['frontier_ratio'] <= 1.1
 
 
 def test_an_interval_off_the_step_grid_is_one_clear_line():

@@ -9,20 +9,23 @@ per step on the map linearised along the previous plan (real-time iteration, Die
 instead of an NLP.
 
 Per step: the previous plan shifted by h (the first step: the linearised LQR law flown on the
-map); the map rolled from the measured state under it; each interval's sensitivities to its
-start state and tension by finite differences, all intervals in one batched network evaluation;
-then the QP in the plan's change du (condensed: the node states are affine in du):
+map, refined by COLD_ITERATIONS QP steps); the map rolled from the measured state under it;
+each interval's sensitivities to its start state and tension by finite differences, all
+intervals in one batched network evaluation; then the QP in the plan's change du (condensed:
+the node states are affine in du):
 
     min  sum_j d_j (q . t_j + r (u_j - 3)^2) + y_N' P y_N + 1e4 sum_j s_j
-    s.t. -t_j <= y_j <= t_j,  |theta_j| <= theta_max + s_j,  s_j >= 0,
+    s.t. -t_j <= y_j <= t_j,  |theta_j| <= theta_max - margin + s_j,  s_j >= 0,
          0 <= u_j <= u_max,  |du_j| <= trust
 
 with y = [theta, theta', ln l, l'] linearised at the nodes (the physics NMPC's 1-norm through
-slacks t, exact instead of smoothed) and P the continuous LQR cost-to-go at the target. The
-plan moves by du and its first tension is flown. Solved by quadprog (dense Goldfarb-Idnani):
-DAQP cycles on this degenerate, LP-like QP (it failed on half the steps of a deployment from
-the paper's start, 2026-11-30), quadprog on none. A failed solve keeps the shifted plan and
-counts a fallback.
+slacks t, exact instead of smoothed), the physics NMPC's margin for theta between nodes and P
+the continuous LQR cost-to-go at the target. The plan moves by du (halved until the new
+plan's rollout keeps the tether longer than LENGTH_FLOOR) and its first tension is flown.
+Solved by quadprog (dense Goldfarb-Idnani): DAQP cycles on this degenerate, LP-like QP (it
+failed on half the steps of a deployment from the paper's start, 2026-11-30), quadprog on
+none. A failed solve keeps the shifted plan and counts a fallback. The default model is
+koopman_retrieval (MODEL, below).
 """
 
 import dataclasses
@@ -35,9 +38,8 @@ from tsr_koopman_ctrl.control.koopman_lqr import load_model
 from tsr_koopman_ctrl.control.law import Law
 from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
 from tsr_koopman_ctrl.control.physics_nmpc import (
-    PhysicsNmpcSettings as Nmpc, prediction_grid, shift_plan)
+    PhysicsNmpcSettings as Nmpc, prediction_grid, shift_plan, THETA_MARGIN)
 from tsr_koopman_ctrl.control.settings import LawSettings, setting
-from tsr_koopman_ctrl.model.shipped import DEFAULT_MODEL
 
 #: Finite-difference step of the sensitivities, the QP's regularisation of its variables (a
 #: strictly convex QP for quadprog) and the weight of the swing slacks: fixed by the first runs.
@@ -45,11 +47,25 @@ DIFFERENCE_STEP = 1e-5
 REGULARISATION = 1e-2
 SLACK_WEIGHT = 1e4
 
+#: QP iterations on the first step (from the LQR plan), and halvings of a QP step whose plan
+#: leaves the model's domain before the step is refused.
+COLD_ITERATIONS = 5
+BACKTRACKS = 4
+#: The plans keep the predicted tether this long at least (half the paper's initial length):
+#: the learned map is not trusted on a tether about to be reeled in completely.
+LENGTH_FLOOR = 0.005
+
+#: A fast deployment brakes by reeling the tether back in (l' < 0 at l < 1), which the paper's
+#: data never show: on koopman_default the plan mispredicts the braking, the tether overshoots
+#: and the last centimetres take a tau (frontier ratio up to 1.58). koopman_retrieval is
+#: koopman_default fine-tuned with retrieval data too (models/README.md).
+MODEL = 'koopman_retrieval'
+
 
 @dataclasses.dataclass(frozen=True)
 class KoopmanNmpcSettings(LawSettings):
     law: ClassVar[str] = 'koopman_nmpc'
-    model: str = setting(DEFAULT_MODEL, 'model directory, or the name of a shipped model')
+    model: str = setting(MODEL, 'model directory, or the name of a shipped model')
     # The physics NMPC's defaults (hand-picked there; not tuned here: ~0.1 s a step).
     horizon: float = setting(Nmpc.horizon, 'prediction horizon [tau]', low=0.2, high=20.0)
     interval: float = setting(Nmpc.interval, 'prediction interval after the four short lead '
@@ -61,6 +77,12 @@ class KoopmanNmpcSettings(LawSettings):
     r: float = setting(Nmpc.r, 'stage weight on (u - 3)^2', low=1e-9, tune=(1e-3, 1e1, 'log'))
     trust: float = setting(2.0, 'largest change of a planned tension per step (the QP trusts '
                            'the linearisation that far)', low=1e-3, high=10.0)
+
+
+def in_model_domain(nodes):
+    """True if a rollout stays finite and keeps the tether longer than LENGTH_FLOOR."""
+    return bool(np.all(np.isfinite(nodes))
+                and np.all(nodes[:, dynamics.LENGTH_OFFSET] > LENGTH_FLOOR - 1.0))
 
 
 class KoopmanNmpc(Law):
@@ -142,21 +164,46 @@ class KoopmanNmpc(Law):
 
     def compute(self, x):
         x = np.asarray(x, dtype=float)[:self.model.n]
-        plan = (self.lqr_plan(x) if self.plan is None else
+        cold = self.plan is None
+        plan = (self.lqr_plan(x) if cold else
                 shift_plan(self.plan, self.starts, self.durations, self.plan_age + self.h))
         nodes = self.rollout(x, plan)
-        if not (np.all(np.isfinite(nodes)) and np.all(dynamics.in_domain(nodes))):
-            plan, nodes = self.lqr_plan(x), None     # the plan leaves the model's domain
-        du = None if nodes is None else self.solve(nodes, plan)
-        if du is None:
+        if not in_model_domain(nodes):
+            plan = self.lqr_plan(x)      # the shifted plan leaves the model's domain
+            nodes = self.rollout(x, plan)
+            if not in_model_domain(nodes):
+                nodes = None
+        new_plan = None
+        for _ in range(COLD_ITERATIONS if cold else 1):
+            step = None if nodes is None else self.iterate(x, nodes, plan)
+            if step is None:
+                break
+            new_plan, (plan, nodes) = step[0], step
+        if new_plan is None:
             self.fallbacks += 1
             if self.plan is None or nodes is None:   # fly the LQR plan just made
                 self.plan, self.plan_age = plan, 0.0
             else:                                    # fly the previous plan on
                 self.plan_age += self.h
             return float(shift_plan(self.plan, self.starts, self.durations, self.plan_age)[0])
-        self.plan, self.plan_age = np.clip(plan + du, 0.0, self.u_max), 0.0
+        self.plan, self.plan_age = new_plan, 0.0
         return float(self.plan[0])
+
+    def iterate(self, x, nodes, plan):
+        """One QP step from `plan` (its rollout `nodes`), shortened until the new plan's rollout
+        stays in the model's domain: (new plan, its rollout), or None. Near a short tether the
+        linearisation is poor: a full step that brakes hard can pull the predicted length
+        through zero, and a plan that leaves the domain cannot be linearised at all."""
+        du = self.solve(nodes, plan)
+        if du is None:
+            return None
+        for _ in range(BACKTRACKS):
+            candidate = np.clip(plan + du, 0.0, self.u_max)
+            candidate_nodes = self.rollout(x, candidate)
+            if in_model_domain(candidate_nodes):
+                return candidate, candidate_nodes
+            du = 0.5 * du
+        return None
 
     def solve(self, nodes, plan):
         """The QP of the module docstring: du, or None if quadprog fails."""
@@ -191,8 +238,8 @@ class KoopmanNmpc(Law):
             [-np.eye(n_nodes), none_s, np.zeros((n_nodes, n_nodes))],        # du <= upper
             [np.zeros((n_nodes, n_nodes + n_t)), eye_s]])                    # s >= 0
         bounds = np.r_[y.ravel(), -y.ravel(),
-                       states[:, dynamics.THETA] - s.theta_max,
-                       -states[:, dynamics.THETA] - s.theta_max,
+                       states[:, dynamics.THETA] - (s.theta_max - THETA_MARGIN),
+                       -states[:, dynamics.THETA] - (s.theta_max - THETA_MARGIN),
                        np.maximum(-plan, -s.trust), -np.minimum(self.u_max - plan, s.trust),
                        np.zeros(n_nodes)]
         try:
