@@ -66,7 +66,7 @@ MODEL = 'koopman_retrieval'
 class KoopmanNmpcSettings(LawSettings):
     law: ClassVar[str] = 'koopman_nmpc'
     model: str = setting(MODEL, 'model directory, or the name of a shipped model')
-    # The physics NMPC's defaults (hand-picked there; not tuned here: ~0.1 s a step).
+    # The physics NMPC's defaults (hand-picked there; not tuned here: ~0.13 s a step).
     horizon: float = setting(Nmpc.horizon, 'prediction horizon [tau]', low=0.2, high=20.0)
     interval: float = setting(Nmpc.interval, 'prediction interval after the four short lead '
                               'ones [tau], a multiple of the step h', low=0.01, high=1.0)
@@ -178,7 +178,8 @@ class KoopmanNmpc(Law):
             step = None if nodes is None else self.iterate(x, nodes, plan)
             if step is None:
                 break
-            new_plan, (plan, nodes) = step[0], step
+            plan, nodes = step
+            new_plan = plan
         if new_plan is None:
             self.fallbacks += 1
             if self.plan is None or nodes is None:   # fly the LQR plan just made
