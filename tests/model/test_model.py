@@ -70,14 +70,14 @@ def test_koopman_retrieval_predicts_the_reeling_in_that_koopman_default_never_sa
         trajectories=500, seed=515151, state_low=datasets.RETRIEVAL_BOX_LOW,
         state_high=datasets.RETRIEVAL_BOX_HIGH))
     x, u = fresh.x[:, :-1].reshape(-1, 4), fresh.u.reshape(-1)
-    step_error = {}
-    for name in ('koopman_default', 'koopman_retrieval'):
-        model = lifted.LiftedModel.load(name)
-        step_error[name] = np.mean((model.step(x, u) - fresh.x[:, 1:].reshape(-1, 4)) ** 2)
+    models = {name: lifted.LiftedModel.load(name)
+              for name in ('koopman_default', 'koopman_retrieval')}
+    step_error = {name: np.mean((model.step(x, u) - fresh.x[:, 1:].reshape(-1, 4)) ** 2)
+                  for name, model in models.items()}
     assert step_error['koopman_retrieval'] < 0.2 * step_error['koopman_default']
-    retrieval = lifted.LiftedModel.load('koopman_retrieval').metadata['metrics']['test']
-    default = lifted.LiftedModel.load('koopman_default').metadata['metrics']['test']
-    assert retrieval['summed_mse'] < 1.25 * default['summed_mse']
+    test_error = {name: model.metadata['metrics']['test']['summed_mse']
+                  for name, model in models.items()}
+    assert test_error['koopman_retrieval'] < 1.25 * test_error['koopman_default']
 
 
 def test_a_model_anchored_at_another_tension_holds_its_equilibrium_there(tiny_model):

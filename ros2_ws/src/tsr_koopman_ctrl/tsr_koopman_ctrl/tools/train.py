@@ -24,22 +24,25 @@ from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
 from tsr_koopman_ctrl.model import model_file, shipped
 
 
+#: Extra sampled data beyond the paper's (not in it): the flag giving the count, the seed offset
+#: from --data-seed, the box of initial states and what the progress line calls them.
+EXTRA_BOXES = (
+    ('equilibrium_trajectories', 1, datasets.EQUILIBRIUM_BOX_LOW, datasets.EQUILIBRIUM_BOX_HIGH,
+     'trajectories near the equilibrium'),
+    ('retrieval_trajectories', 2, datasets.RETRIEVAL_BOX_LOW, datasets.RETRIEVAL_BOX_HIGH,
+     'retrieval trajectories'))
+
+
 def load_data(args):
     parts = [datasets.load(path) for path in args.data]
-    if args.equilibrium_trajectories > 0:
-        near, dropped = datasets.sample(datasets.SamplingConfig(
-            trajectories=args.equilibrium_trajectories, seed=args.data_seed + 1,
-            state_low=datasets.EQUILIBRIUM_BOX_LOW, state_high=datasets.EQUILIBRIUM_BOX_HIGH))
-        print(f'sampled {len(near)} trajectories near the equilibrium ({dropped} dropped)',
-              flush=True)
-        parts.append(near)
-    if args.retrieval_trajectories > 0:
-        retrieval, dropped = datasets.sample(datasets.SamplingConfig(
-            trajectories=args.retrieval_trajectories, seed=args.data_seed + 2,
-            state_low=datasets.RETRIEVAL_BOX_LOW, state_high=datasets.RETRIEVAL_BOX_HIGH))
-        print(f'sampled {len(retrieval)} retrieval trajectories ({dropped} dropped)',
-              flush=True)
-        parts.append(retrieval)
+    for flag, seed_offset, low, high, label in EXTRA_BOXES:
+        count = getattr(args, flag)
+        if count > 0:
+            extra, dropped = datasets.sample(datasets.SamplingConfig(
+                trajectories=count, seed=args.data_seed + seed_offset, state_low=low,
+                state_high=high))
+            print(f'sampled {len(extra)} {label} ({dropped} dropped)', flush=True)
+            parts.append(extra)
     if args.trajectories > 0:
         sampled, dropped = datasets.sample(datasets.SamplingConfig(
             trajectories=args.trajectories, seed=args.data_seed))
