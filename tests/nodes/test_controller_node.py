@@ -1,6 +1,8 @@
 """The controller node as a separate process: timeouts on both sides, restart, bad models."""
 
+import numpy as np
 import pytest
+from tsr_sim import dynamics
 from tsr_sim import wire
 from tsr_sim.units import Scale
 
@@ -65,3 +67,42 @@ def test_bad_controller_configuration_fails_at_start_with_one_line(start_node, t
     log = (tmp_path / 'tsr_controller.log').read_text()
     assert message in log and 'Traceback' not in log
     assert log.count('cannot start:') == 1
+
+
+def test_a_repeated_state_gets_its_command_again_without_running_the_law_twice(ros, start_node):
+    """A lockstep simulator publishes a state again when its command is late. The answer is
+    the same command, and the law (here with its observer, which has state) runs once per
+    step, so the next step's command is the ROS-free loop's."""
+    from tsr_msgs.msg import ControllerStatus, TensionCommand, TsrState
+    from tsr_sim import ros_io
+
+    from tsr_koopman_ctrl.control import closed_loop, make_controller
+    want_x, want_u = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE, 2)
+    start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
+               {'controller': 'linear_lqr'})
+    node = ros.node
+    commands, statuses = [], []
+    state_pub = node.create_publisher(TsrState, wire.STATE_TOPIC, ros_io.LOOP_QOS)
+    node.create_subscription(TensionCommand, wire.TENSION_TOPIC,
+                             lambda m: commands.append((m.step, m.tension)), ros_io.LOOP_QOS)
+    node.create_subscription(ControllerStatus, wire.CONTROLLER_STATUS_TOPIC,
+                             lambda m: statuses.append(m.step), ros_io.LOOP_QOS)
+    ros.spin_until(lambda: state_pub.get_subscription_count() > 0
+                   and node.count_publishers(wire.TENSION_TOPIC) > 0,
+                   what='the controller to appear')
+
+    def send(step, expected_commands):
+        state_pub.publish(wire.state_to_msg(SCALE.state_to_si(want_x[step]), step,
+                                            node.get_clock().now().to_msg()))
+        ros.spin_until(lambda: len(commands) >= expected_commands,
+                       what=f'command {expected_commands}')
+
+    send(0, 1)
+    send(0, 2)       # the repeat
+    send(1, 3)
+    ros.spin_until(lambda: len(statuses) >= 2, what='the statuses')
+    assert [step for step, _ in commands] == [0, 0, 1]
+    assert commands[1][1] == commands[0][1]
+    np.testing.assert_allclose([SCALE.tension_to_u(t) for _, t in commands],
+                               [want_u[0], want_u[0], want_u[1]], rtol=0, atol=1e-12)
+    assert statuses == [0, 1]    # one compute (and one status) per step

@@ -3,7 +3,9 @@
 Modes:
   lockstep  advance one step per accepted command answering the current step: deterministic,
             as fast as DDS allows. With no command for `republish_period` wall seconds, the
-            current state is published again (a late controller still gets it) with a warning.
+            current state is published again (a late controller still gets it) with a warning;
+            the controller's answer to that repeat, a copy of the command already accepted,
+            is dropped without one.
   timed     advance at `rate_hz` wall-clock steps per second (time scale = rate_hz * step /
             Omega sim seconds per wall second) holding the latest command; with no valid command
             for `command_timeout` wall seconds, apply `safe_tension` and count a timeout.
@@ -58,6 +60,7 @@ class SimNode(Node):
             self, 'wait_for_subscribers', 0, 'lockstep: publish no state until the state topic '
             'has this many subscribers (controller, recorder)', 0, 1000)
         self.done = False   # run_node stops spinning once set
+        self.last_accepted = None   # (step, tension) of the last command accepted in lockstep
         self.exit_on_finish = declare(self, 'exit_on_finish', False,
                                       'shut the node down when max_steps is reached or the '
                                       'state leaves the domain')
@@ -117,6 +120,8 @@ class SimNode(Node):
         if self.plant.status is not Status.RUNNING:
             return
         step = msg.step if self.mode == 'lockstep' else None
+        if step is not None and (step, msg.tension) == self.last_accepted:
+            return   # the answer to a republished state: this command was applied already
         rejection = self.plant.accept(msg.tension, step)
         if rejection is not None:
             self.get_logger().warning(
@@ -128,6 +133,7 @@ class SimNode(Node):
             return
         self.last_command_wall = time.monotonic()
         self.next_idle_warning = 0.0
+        self.last_accepted = (step, msg.tension)
         if self.mode == 'lockstep':
             self.step(msg.tension)
         else:
@@ -216,6 +222,7 @@ class SimNode(Node):
             self.get_logger().warning(f'reset refused: {error}')
         self.last_command_wall = time.monotonic()
         self.held_tension = self.safe_tension
+        self.last_accepted = None   # step numbers start again
         self.publish_status()
         if error is None:
             self.publish_state()

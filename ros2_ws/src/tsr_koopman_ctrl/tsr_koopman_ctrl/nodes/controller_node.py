@@ -7,7 +7,10 @@ declaration; `ros2 param describe` shows descriptions and ranges). Every command
 [0, max_tension] (the law's own bound is the same number) and the clamps counted. A non-finite
 state gets no command. With no state for `state_timeout` wall seconds the node publishes
 `safe_tension` (default: the equilibrium tension, u = 3) every `state_timeout` seconds, until
-states return. Each state's outcome and the law's compute time go out on
+states return. A state repeated exactly (same step, same values: a lockstep simulator publishes
+the state again when its command is late, e.g. behind a slow first solve) gets the command it
+already got, resent, without running the law again: a second compute would advance the law's
+plan and observer twice for one step. Each state's outcome and the law's compute time go out on
 `tsr/controller_status` (recorded in the bag). A bad law, setting or model stops the node at
 start with one line (exit 2).
 """
@@ -83,7 +86,10 @@ class ControllerNode(Node):
         self.wait_for_subscribers = declare(
             self, 'wait_for_subscribers', 0, 'send no command until the tension topic has this '
             'many subscribers (simulator, recorder)', 0, 1000)
-        self.counts = {'commands': 0, 'non_finite_states': 0, 'state_timeouts': 0}
+        self.counts = {'commands': 0, 'non_finite_states': 0, 'state_timeouts': 0,
+                       'resent': 0}
+        #: ((step, SI state bytes), command) of the last state answered: a repeat is resent.
+        self.last_answer = None
         self.last_state_wall = time.monotonic()
         self.last_step = 0
         self.compute_seconds = deque(maxlen=100_000)
@@ -112,6 +118,13 @@ class ControllerNode(Node):
             return
         self.last_state_wall, self.last_step = time.monotonic(), msg.step
         si = state_from_msg(msg, dynamics.PLANAR_DIM)
+        key = (msg.step, si.tobytes())
+        if self.last_answer is not None and self.last_answer[0] == key:
+            self.counts['resent'] += 1
+            self.pub.publish(self.last_answer[1])
+            self.get_logger().info(f'state of step {msg.step} repeated: its command resent',
+                                   throttle_duration_sec=5.0)
+            return
         if not np.all(np.isfinite(si)):
             self.counts['non_finite_states'] += 1
             self.get_logger().warning(f'non-finite state at step {msg.step}: no command',
@@ -140,7 +153,9 @@ class ControllerNode(Node):
         if hasattr(self.controller, 'applied'):   # the observer must know what was sent
             self.controller.applied(u)
         tension = self.scale.u_to_tension(u)
-        self.pub.publish(tension_msg(tension, msg.step, stamp))
+        command = tension_msg(tension, msg.step, stamp)
+        self.pub.publish(command)
+        self.last_answer = (key, command)
         self.counts['commands'] += 1
         status = (ControllerStatus.SOLVER_FALLBACK if self.controller.fallbacks > fallbacks
                   else ControllerStatus.CLAMPED if self.limiter.clamped > clamped
@@ -195,7 +210,8 @@ class ControllerNode(Node):
                   f'clamped {self.limiter.clamped}, solver fallbacks '
                   f'{self.controller.fallbacks}, non-finite states '
                   f'{self.counts["non_finite_states"]}, state timeouts '
-                  f'{self.counts["state_timeouts"]}', flush=True)
+                  f'{self.counts["state_timeouts"]}, repeated states resent '
+                  f'{self.counts["resent"]}', flush=True)
 
 
 def main(args=None):
