@@ -23,6 +23,23 @@ def test_sampler_follows_table1_and_drops_runaways():
     assert data.provenance[0]['dropped'] == dropped and data.provenance[0]['seed'] == 7
 
 
+def test_held_tensions_are_blocks_with_the_asked_share_at_the_ends():
+    config = datasets.SamplingConfig(trajectories=4000, steps=30, **datasets.HELD_TENSIONS)
+    u = datasets.tensions(config, np.random.default_rng(3))
+    blocks = u.reshape(4000, 3, 10)
+    assert np.all(blocks == blocks[:, :, :1])            # held for 10 steps
+    at_ends = np.isin(blocks[:, :, 0], (0.0, 5.0)).mean()
+    assert abs(at_ends - 2.0 / 3.0) < 0.02               # 12 000 blocks: sd 0.004
+    assert abs((blocks[:, :, 0] == 5.0).mean() - 1.0 / 3.0) < 0.02
+    assert u.min() >= 0.0 and u.max() <= 5.0
+    # The default is the paper's: a fresh uniform tension every step, the same stream as before.
+    paper = datasets.SamplingConfig(trajectories=5, steps=7)
+    np.testing.assert_array_equal(datasets.tensions(paper, np.random.default_rng(1)),
+                                  np.random.default_rng(1).uniform(0.0, 5.0, (5, 7)))
+    with pytest.raises(ValueError, match='tension_hold'):
+        datasets.SamplingConfig(tension_hold=0)
+
+
 def test_dataset_file_round_trip_and_errors(small_data, tmp_path):
     path = tmp_path / 'd.npz'
     datasets.save(small_data, path)

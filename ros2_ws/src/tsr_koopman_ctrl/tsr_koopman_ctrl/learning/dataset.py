@@ -36,6 +36,10 @@ EQUILIBRIUM_BOX_HIGH = (0.3, 0.3, 0.2, 0.3)
 RETRIEVAL_BOX_LOW = (-1.0, -2.0, -0.99, -1.5)
 RETRIEVAL_BOX_HIGH = (1.0, 2.0, 0.0, 0.0)
 
+#: Not in the paper: tensions held for 10 steps (0.1 tau), two in three at 0 or 5: how the
+#: physics and learned NMPCs fly (coast at 0, brake at 5). From the Table-1 box.
+HELD_TENSIONS = {'tension_hold': 10, 'tension_extremes': 2.0 / 3.0}
+
 
 @dataclasses.dataclass(frozen=True)
 class SamplingConfig:
@@ -54,10 +58,18 @@ class SamplingConfig:
     #: A trajectory whose state leaves |x_i| <= this bound (or the domain l > 0) is a runaway of
     #: the plant itself and is dropped.
     max_abs_state: float = 10.0
+    #: Not in the paper (which draws every step's tension afresh, uniform in the range): hold
+    #: each tension for this many steps, and draw it at the range's ends (0 or 5, each half the
+    #: time) with this probability. A minimum-time law holds 0 or 5 for tenths of a tau; i.i.d.
+    #: tensions average out within a few steps and never show the state such a hold reaches.
+    tension_hold: int = 1
+    tension_extremes: float = 0.0
 
     def __post_init__(self):
-        if self.trajectories < 1 or self.steps < 1 or self.substeps < 1:
-            raise ValueError('trajectories, steps and substeps must be >= 1')
+        if min(self.trajectories, self.steps, self.substeps, self.tension_hold) < 1:
+            raise ValueError('trajectories, steps, substeps and tension_hold must be >= 1')
+        if not 0.0 <= self.tension_extremes <= 1.0:
+            raise ValueError(f'tension_extremes must be in [0, 1], got {self.tension_extremes}')
         if not self.h > 0.0:
             raise ValueError(f'h must be > 0, got {self.h}')
 
@@ -101,13 +113,26 @@ def sample(config=SamplingConfig()):
     rng = np.random.default_rng(config.seed)
     size = (config.trajectories, len(config.state_low))
     x0 = rng.uniform(config.state_low, config.state_high, size)
-    u = rng.uniform(*config.tension_range, (config.trajectories, config.steps))
+    u = tensions(config, rng)
     x = dynamics.rollout(x0, u, config.h, config.substeps)
     keep = keep_mask(x, config.max_abs_state)
     record = {'source': 'sampled', 'kept': int(keep.sum()), 'dropped': int((~keep).sum()),
               **dataclasses.asdict(config)}
     provenance = [json.loads(json.dumps(record))]   # as a file stores it: tuples -> lists
     return Dataset(x[keep], u[keep], config.h, provenance), int((~keep).sum())
+
+
+def tensions(config, rng):
+    """(trajectories, steps) tensions: the paper's i.i.d. uniform ones, or held levels with
+    some at the range's ends (`SamplingConfig.tension_hold`, `tension_extremes`)."""
+    low, high = config.tension_range
+    if config.tension_hold == 1 and config.tension_extremes == 0.0:
+        return rng.uniform(low, high, (config.trajectories, config.steps))
+    blocks = (config.trajectories, -(-config.steps // config.tension_hold))
+    levels = rng.uniform(low, high, blocks)
+    ends = np.where(rng.random(blocks) < 0.5, low, high)
+    levels = np.where(rng.random(blocks) < config.tension_extremes, ends, levels)
+    return np.repeat(levels, config.tension_hold, axis=1)[:, :config.steps]
 
 
 def keep_mask(x, max_abs_state):

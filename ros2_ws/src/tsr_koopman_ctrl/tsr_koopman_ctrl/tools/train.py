@@ -18,6 +18,7 @@ import sys
 import time
 
 import torch
+from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
@@ -25,22 +26,26 @@ from tsr_koopman_ctrl.model import model_file, shipped
 
 
 #: Extra sampled data beyond the paper's (not in it): the flag giving the count, the seed offset
-#: from --data-seed, the box of initial states and what the progress line calls them.
+#: from --data-seed, the box of initial states, further sampling settings and what the progress
+#: line calls them.
 EXTRA_BOXES = (
     ('equilibrium_trajectories', 1, datasets.EQUILIBRIUM_BOX_LOW, datasets.EQUILIBRIUM_BOX_HIGH,
-     'trajectories near the equilibrium'),
-    ('retrieval_trajectories', 2, datasets.RETRIEVAL_BOX_LOW, datasets.RETRIEVAL_BOX_HIGH,
-     'retrieval trajectories'))
+     {}, 'trajectories near the equilibrium'),
+    ('retrieval_trajectories', 2, datasets.RETRIEVAL_BOX_LOW, datasets.RETRIEVAL_BOX_HIGH, {},
+     'retrieval trajectories'),
+    ('held_tension_trajectories', 3, tuple(dynamics.TABLE1_STATE_LOW),
+     tuple(dynamics.TABLE1_STATE_HIGH), datasets.HELD_TENSIONS, 'held-tension trajectories'))
 
 
 def load_data(args):
     parts = [datasets.load(path) for path in args.data]
-    for flag, seed_offset, low, high, label in EXTRA_BOXES:
+    for flag, seed_offset, low, high, settings, label in EXTRA_BOXES:
         count = getattr(args, flag)
         if count > 0:
             extra, dropped = datasets.sample(datasets.SamplingConfig(
-                trajectories=count, seed=args.data_seed + seed_offset, state_low=low,
-                state_high=high))
+                trajectories=count, seed=args.data_seed + seed_offset,
+                state_low=tuple(float(v) for v in low), state_high=tuple(float(v) for v in high),
+                **settings))
             print(f'sampled {len(extra)} {label} ({dropped} dropped)', flush=True)
             parts.append(extra)
     if args.trajectories > 0:
@@ -91,6 +96,9 @@ def parser():
     p.add_argument('--retrieval-trajectories', type=int, default=0,
                    help="extra trajectories with the tether reeled in, l' < 0 (not in the "
                    'paper)')
+    p.add_argument('--held-tension-trajectories', type=int, default=0,
+                   help='extra trajectories from the Table-1 box with tensions held for 10 '
+                   'steps, two in three at 0 or 5 (not in the paper)')
     p.add_argument('--weight-equilibrium', type=float,
                    help='weight of the equilibrium drift loss (not in the paper; default 0)')
     p.add_argument('--weight-one-step', type=float,
