@@ -12,8 +12,8 @@ from tsr_koopman_ctrl.evaluation import run_figures
 def test_the_condensed_gains_predict_the_relifted_rollout_to_first_order():
     law = KoopmanNmpc(horizon=1.0)
     x = dynamics.PAPER_INITIAL_STATE
-    plan = law.lqr_plan(x)
-    nodes = law.rollout(x, plan)
+    plan, nodes = law.lqr_plan(x)
+    np.testing.assert_array_equal(law.rollout(x, plan), nodes)
     gains = law.node_gains(nodes, plan)
     du = np.random.default_rng(0).normal(size=len(plan))
     errors = []

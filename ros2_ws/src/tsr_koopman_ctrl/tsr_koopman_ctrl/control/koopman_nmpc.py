@@ -118,24 +118,28 @@ class KoopmanNmpc(Law):
         #: Steps since the plan was made (it ages when a solve fails).
         self.plan_age = 0.0
 
-    def lqr_plan(self, x):
-        """The linearised LQR law (Q = I, R = 1) flown on the map over the grid: a first plan."""
-        plan, state = [], np.asarray(x, dtype=float)[None]
-        u_eq = dynamics.EQUILIBRIUM_TENSION
-        for count in self.counts:
-            plan.append(float(np.clip(u_eq - self.lqr_gain @ state[0], 0.0, self.u_max)))
+    def fly(self, x, tension):
+        """Fly the map from x over the grid, interval j at `tension(j, state at its start)`:
+        (plan (N,), node states (N + 1, n))."""
+        x = np.asarray(x, dtype=float)
+        plan, nodes, state = [], [x], x[None]
+        for j, count in enumerate(self.counts):
+            plan.append(tension(j, state[0]))
             for _ in range(count):
                 state = self.model.step(state, np.array([plan[-1]]))
-        return np.array(plan)
+            nodes.append(state[0])
+        return np.array(plan), np.array(nodes)
+
+    def lqr_plan(self, x):
+        """The linearised LQR law (Q = I, R = 1) flown on the map over the grid, a first plan:
+        (plan, its rollout)."""
+        u_eq = dynamics.EQUILIBRIUM_TENSION
+        return self.fly(x, lambda j, state: float(np.clip(u_eq - self.lqr_gain @ state, 0.0,
+                                                          self.u_max)))
 
     def rollout(self, x, plan):
         """The node states (N + 1, n) of `plan` flown on the map from x."""
-        nodes, state = [x], x[None]
-        for count, u in zip(self.counts, plan):
-            for _ in range(count):
-                state = self.model.step(state, np.array([u]))
-            nodes.append(state[0])
-        return np.array(nodes)
+        return self.fly(x, lambda j, state: plan[j])[1]
 
     def sensitivities(self, nodes, plan):
         """(A_j, b_j): d x_{j+1} / d x_j (N, n, n) and / d u_j (N, n), by forward differences;
@@ -171,14 +175,10 @@ class KoopmanNmpc(Law):
     def compute(self, x):
         x = np.asarray(x, dtype=float)[:self.model.n]
         cold = self.plan is None
-        if cold:
-            plan = self.lqr_plan(x)
-            nodes = self.rollout(x, plan)
-        else:
-            plan, nodes = self.shifted_plan(x, self.plan_age + self.h)
+        plan, nodes = (self.lqr_plan(x) if cold else
+                       self.shifted_plan(x, self.plan_age + self.h))
         if not in_model_domain(nodes):
-            plan = self.lqr_plan(x)      # the shifted plan leaves the model's domain
-            nodes = self.rollout(x, plan)
+            plan, nodes = self.lqr_plan(x)      # the shifted plan leaves the model's domain
             if not in_model_domain(nodes):
                 nodes = None
         new_plan = None
@@ -209,22 +209,15 @@ class KoopmanNmpc(Law):
         0.27 (median; up to 0.55) where the plans they came from predicted 0.018; with the
         feedback, 0.031 (up to 0.042) against 0.0085. Frontier ratio 0.99..1.17 from the nine
         starts instead of 1.03..1.20 (2026-11-30)."""
-        plan = shift_plan(self.plan, self.starts, self.durations, age)
+        shifted = shift_plan(self.plan, self.starts, self.durations, age)
         if self.settings.warm_start == 'shift' or self.plan_nodes is None:
-            return plan, self.rollout(x, plan)     # (no path: the LQR plan after a failure)
-        plan = plan.copy()
+            return shifted, self.rollout(x, shifted)   # (no path: the LQR plan after a failure)
         times = np.r_[self.starts, self.starts[-1] + self.durations[-1]]
         wanted = np.minimum(self.starts + age, times[-1])
         reference = np.stack([np.interp(wanted, times, self.plan_nodes[:, i])
                               for i in range(self.model.n)], axis=1)
-        nodes, state = [x], x[None]
-        for j, count in enumerate(self.counts):
-            plan[j] = np.clip(plan[j] - self.lqr_gain @ (state[0] - reference[j]), 0.0,
-                              self.u_max)
-            for _ in range(count):
-                state = self.model.step(state, np.array([plan[j]]))
-            nodes.append(state[0])
-        return plan, np.array(nodes)
+        return self.fly(x, lambda j, state: float(np.clip(
+            shifted[j] - self.lqr_gain @ (state - reference[j]), 0.0, self.u_max)))
 
     def iterate(self, x, nodes, plan):
         """One QP step from `plan` (its rollout `nodes`), shortened until the new plan's rollout

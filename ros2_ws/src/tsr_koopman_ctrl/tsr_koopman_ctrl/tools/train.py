@@ -33,8 +33,8 @@ EXTRA_BOXES = (
      {}, 'trajectories near the equilibrium'),
     ('retrieval_trajectories', 2, datasets.RETRIEVAL_BOX_LOW, datasets.RETRIEVAL_BOX_HIGH, {},
      'retrieval trajectories'),
-    ('held_tension_trajectories', 3, tuple(dynamics.TABLE1_STATE_LOW),
-     tuple(dynamics.TABLE1_STATE_HIGH), datasets.HELD_TENSIONS, 'held-tension trajectories'))
+    ('held_tension_trajectories', 3, dynamics.TABLE1_STATE_LOW, dynamics.TABLE1_STATE_HIGH,
+     datasets.HELD_TENSIONS, 'held-tension trajectories'))
 
 
 def load_data(args):
