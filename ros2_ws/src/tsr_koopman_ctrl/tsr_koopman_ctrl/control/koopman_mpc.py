@@ -64,10 +64,11 @@ class KoopmanMpc(Law):
     Solved by DAQP (or OSQP); if the solver reports no optimum the last move is repeated and
     `fallbacks` counted.
 
-    The default horizon is short (5 steps, 0.05 tau) on purpose: the learned model's one-step
+    The default horizon is short (3 steps, 0.03 tau) on purpose: the default model's one-step
     map is accurate near the path but its 30-step predictions carry errors that, re-planned
     every step, stall or tumble the deployment (README: horizon sweep); the local terminal
-    cost carries the long-term goal.
+    cost carries the long-term goal. On koopman_block, whose observables are stable by
+    construction, 30 steps serve better (config/tuned_ratio.yaml).
     """
 
     name = 'koopman_mpc'
