@@ -28,6 +28,7 @@ def test_compare_scores_every_start_with_the_loop_s_own_figures(tmp_path):
     assert rows[0]['settle_tau'] == first['settle_tau'] and rows[0]['swing'] == first['swing']
     assert rows[0]['compute_median_us'] > 0.0
     assert '| linear_lqr | untuned |' in (tmp_path / 'comparison.md').read_text()
+    assert (tmp_path / 'ratios.png').stat().st_size > 0
 
 
 def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):

@@ -45,3 +45,44 @@ def log_plot(path, series, xlabel, ylabel, marker=None):
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot_ratios(rows, path, target=1.3, title="Settle time / minimum time at the run's swing"):
+    """Grouped bars of the frontier ratio: one group per start, one bar per (law, preset) of the
+    comparison rows (untuned rows left out), a law's presets side by side in one hue (dark, then
+    light); a run that did not settle is a hatched bar to the top. Lines at the frontier (1)
+    and at `target`. Writes a PNG to path."""
+    import numpy as np
+    rows = [r for r in rows if not str(r['preset']).startswith('untuned')]
+    laws = list(dict.fromkeys(r['law'] for r in rows))
+    series = sorted(dict.fromkeys((r['law'], r['preset']) for r in rows),
+                    key=lambda key: laws.index(key[0]))
+    starts = list(dict.fromkeys((tuple(r['start']), r['starts']) for r in rows))
+    ratios = {(r['law'], r['preset'], tuple(r['start'])): r['frontier_ratio'] for r in rows}
+    known = [v for v in ratios.values() if v is not None]
+    top = max(known + [target]) * 1.08
+    width = 0.8 / max(len(series), 1)
+    fig, ax = plt.subplots(figsize=(max(8.0, 1.5 * len(starts) + 3.0), 5.0))
+    colours, shade = plt.get_cmap('tab20'), {}
+    for i, (law, preset) in enumerate(series):
+        shade[law] = shade.get(law, -1) + 1
+        values = [ratios.get((law, preset, start)) for start, _ in starts]
+        x = np.arange(len(starts)) + (i - (len(series) - 1) / 2) * width
+        ax.bar(x, [top if v is None else v for v in values], width,
+               color=colours((2 * laws.index(law) + min(shade[law], 1)) % 20),
+               label=f'{law} ({preset})',
+               hatch=None if all(v is not None for v in values) else '//')
+    ax.axhline(1.0, color='k', lw=0.8)
+    ax.axhline(target, color='r', lw=0.8, ls='--', label=f'target {target:g}x')
+    ax.set_xticks(np.arange(len(starts)))
+    ax.set_xticklabels(['(' + ', '.join(f'{v:g}' for v in start) + f')\n{kind}'
+                        for start, kind in starts], fontsize=7)
+    ax.set_ylim(0.8, top)
+    ax.set_xlabel('initial state (theta, theta\', l - 1, l\')')
+    ax.set_ylabel('frontier ratio')
+    ax.set_title(title)
+    ax.grid(True, axis='y', alpha=0.3)
+    ax.legend(fontsize=7, loc='upper left', bbox_to_anchor=(1.0, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

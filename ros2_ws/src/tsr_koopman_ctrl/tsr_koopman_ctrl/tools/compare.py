@@ -24,7 +24,7 @@ from tsr_sim import dynamics
 from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller, TimedLaw
 from tsr_koopman_ctrl.control.registry import law_class, preset
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
-from tsr_koopman_ctrl.evaluation.plots import plot_deployments
+from tsr_koopman_ctrl.evaluation.plots import plot_deployments, plot_ratios
 from tsr_koopman_ctrl.tools.report import write_results
 
 
@@ -140,6 +140,7 @@ def main(argv=None):
     for index, (start, runs) in enumerate(loops.items()):
         plot_deployments(runs, os.path.join(args.out, f'x0_{index}.png'),
                          title=f'TSR deployment from x0 = {list(start)}')
+    plot_ratios(rows, os.path.join(args.out, 'ratios.png'))
     print(text)
     return 0
 
