@@ -2,6 +2,7 @@
 against tau, one line per run) and log-scale error curves."""
 
 import matplotlib
+import numpy as np
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the file backend)
@@ -49,11 +50,9 @@ def log_plot(path, series, xlabel, ylabel, marker=None):
 
 def plot_ratios(rows, path, target=1.3, title="Settle time / minimum time at the run's swing"):
     """Grouped bars of the frontier ratio: one group per start, one bar per (law, preset) of the
-    comparison rows (untuned rows left out), a law's presets side by side in one hue (dark, then
-    light); a run that did not settle is a hatched bar to the top. Lines at the frontier (1)
-    and at `target`. Writes a PNG to path."""
-    import numpy as np
-    rows = [r for r in rows if not str(r['preset']).startswith('untuned')]
+    comparison rows given, a law's presets side by side in one hue (dark, then light); a run
+    that did not settle is a hatched bar to the top. Lines at the frontier (1) and at `target`.
+    Writes a PNG to path."""
     laws = list(dict.fromkeys(r['law'] for r in rows))
     series = sorted(dict.fromkeys((r['law'], r['preset']) for r in rows),
                     key=lambda key: laws.index(key[0]))

@@ -140,7 +140,9 @@ def main(argv=None):
     for index, (start, runs) in enumerate(loops.items()):
         plot_deployments(runs, os.path.join(args.out, f'x0_{index}.png'),
                          title=f'TSR deployment from x0 = {list(start)}')
-    plot_ratios(rows, os.path.join(args.out, 'ratios.png'))
+    shown = {label for runs in loops.values() for label in runs}    # the plots' runs (no untuned)
+    plot_ratios([r for r in rows if f"{r['law']} ({r['preset']})" in shown],
+                os.path.join(args.out, 'ratios.png'))
     print(text)
     return 0
 
