@@ -61,6 +61,24 @@ def test_koopman_lqr_on_an_exact_linear_lift_is_the_discrete_lqr():
     assert summary['settle_tau'] is not None and summary['settle_tau'] < 12.0
 
 
+def test_the_lifted_laws_take_the_cross_terms_of_the_state_weight():
+    """Q = L L^T with L's diagonal sqrt(q) and the cross terms below it: on an exact lift the
+    Koopman-LQR is the discrete LQR with that Q, solved here by scipy."""
+    import scipy.linalg
+    model, a_d, b_d = exact_linear_lifted_model()
+    cross = (0.4, -0.8, 1.5, 0.2, 0.0, -0.6)
+    factor = np.diag(np.sqrt([2.0, 0.5, 3.0, 1.0]))
+    factor[np.tril_indices(4, -1)] = cross
+    controller = KoopmanLqr(model=model, r=0.7, state_weight='state', q=(2.0, 0.5, 3.0, 1.0),
+                            q_cross=cross)
+    p = scipy.linalg.solve_discrete_are(a_d, b_d, factor @ factor.T, np.array([[0.7]]))
+    gain = np.linalg.solve(0.7 + b_d.T @ p @ b_d, b_d.T @ p @ a_d)[0]
+    x = np.array([0.01, -0.02, 0.015, 0.005])
+    assert controller.compute(x) == pytest.approx(3.0 - gain @ x, abs=1e-9)
+    with pytest.raises(ValueError, match='symmetric positive semidefinite'):
+        model.state_weight(-np.eye(4))
+
+
 def test_local_linear_model_of_an_exact_lift_is_the_discretised_linearisation():
     model, a_d, b_d = exact_linear_lifted_model()
     jacobian, b_x = model.local_linear_model()

@@ -97,3 +97,23 @@ def test_the_untuned_fractional_pd_gains_are_the_untuned_linear_lqr_gains():
     from tsr_koopman_ctrl.control.registry import preset
     np.testing.assert_allclose(preset('untuned')['fractional_pd']['gains'],
                                LinearisedLqr(**UNTUNED).gain, atol=1e-3)
+
+
+def test_the_cross_terms_make_the_state_weight_the_factor_product():
+    q, cross = (4.0, 1.0, 9.0, 0.25), (0.5, -1.0, 2.0, 0.3, 0.0, -0.7)
+    # Written out by hand: L with diagonal sqrt(q), the cross terms below it row by row.
+    factor = np.array([[2.0, 0.0, 0.0, 0.0], [0.5, 1.0, 0.0, 0.0], [-1.0, 2.0, 3.0, 0.0],
+                       [0.3, 0.0, -0.7, 0.5]])
+    weight = factor @ factor.T
+    law = LinearisedLqr(q=q, q_cross=cross, r=0.3)
+    # The gain of the full-matrix CARE, solved here without the project's helper.
+    import scipy.linalg
+    a, b = dynamics.linearise()
+    p = scipy.linalg.solve_continuous_are(a, b, weight, np.array([[0.3]]))
+    np.testing.assert_allclose(law.gain, (b.T @ p)[0] / 0.3, rtol=1e-9)
+    # Zero cross terms are the diagonal weight the law had before.
+    np.testing.assert_array_equal(LinearisedLqr(q=q, r=0.3).gain,
+                                  LinearisedLqr(q=q, q_cross=(0.0,) * 6, r=0.3).gain)
+    assert not np.allclose(law.gain, LinearisedLqr(q=q, r=0.3).gain)
+    with pytest.raises(ValueError, match='q_cross needs 6 numbers'):
+        LinearisedLqr(q_cross=(1.0, 2.0))

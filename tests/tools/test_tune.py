@@ -30,6 +30,20 @@ def test_the_search_space_comes_from_the_settings_classes():
     assert tune.suggest(trial, 'linear_lqr') == {'q': (2.0, 3.0, 4.0, 5.0), 'r': 0.5}
     assert set(tune.as_params('koopman_mpc', {})) == {'horizon', 'r', 'q_0', 'q_1', 'q_2',
                                                       'q_3'}
+    # The state weight's cross terms only when asked (--also), six of them.
+    params = tune.as_params('linear_lqr', {}, also=('q_cross',))
+    assert {f'q_cross_{i}' for i in range(6)} <= set(params)
+    assert all(params[f'q_cross_{i}'] == 0.0 for i in range(6))
+
+
+def test_also_names_a_searchable_setting(tmp_path, capsys):
+    args = ['--law', 'linear_lqr', '--steps', '300', '--out', str(tmp_path), '--trials', '1']
+    assert tune.main([*args, '--also', 'q_cross']) == 0
+    summary = json.loads((tmp_path / 'linear_lqr_with-q_cross_swing0.8.json').read_text())
+    assert len(summary['best_settings']['q_cross']) == 6
+    assert tune.main([*args, '--also', 'horizon']) == 2
+    assert '--also horizon: linear_lqr has no such searchable setting' in \
+        capsys.readouterr().err
 
 
 @pytest.mark.parametrize('settings, expected', [({'r': -1.0}, tune.PENALTY_TAU)])

@@ -10,7 +10,7 @@ from tsr_sim import dynamics
 from tsr_koopman_ctrl.control.koopman_lqr import lifted_state_weight, load_model
 from tsr_koopman_ctrl.control.law import Law
 from tsr_koopman_ctrl.control.lqr import discrete_lqr_gain, prediction_matrices
-from tsr_koopman_ctrl.control.settings import LawSettings, setting
+from tsr_koopman_ctrl.control.settings import cross_weight_setting, LawSettings, setting
 from tsr_koopman_ctrl.model.shipped import DEFAULT_MODEL
 
 
@@ -27,6 +27,7 @@ class KoopmanMpcSettings(LawSettings):
                                 "the lifted state ('lifted')", choices=('lifted', 'state'))
     q: tuple = setting((0.06105, 9.422, 24.54, 0.6444), "state weights q of Q' = C^T diag(q) C",
                        low=0.0, tune=(1e-2, 1e2, 'log'))
+    q_cross: tuple = cross_weight_setting()
     theta_max: float = setting(0.8, 'soft bound on |theta| in the prediction [rad]',
                                low=0.01, high=3.2)
     overshoot_max: float = setting(0.05, 'soft bound on l - 1 in the prediction (fraction of '

@@ -7,8 +7,8 @@ import numpy as np
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control.law import Law
-from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
-from tsr_koopman_ctrl.control.settings import LawSettings, setting
+from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain, state_cost_matrix
+from tsr_koopman_ctrl.control.settings import cross_weight_setting, LawSettings, setting
 
 
 @dataclasses.dataclass(frozen=True)
@@ -17,7 +17,9 @@ class LinearLqrSettings(LawSettings):
     # Tuned: tools/tune.py, 60 trials, swing <= 0.8 rad (docs/tuning/linear_lqr_swing0.8.md);
     # before tuning Q = I, R = 1 (config/untuned.yaml).
     q: tuple = setting((16.14, 0.4896, 14.45, 0.03577), "state weights Q = diag(q) on "
-                       "[theta, theta', l - 1, l']", low=0.0, tune=(1e-2, 1e2, 'log'))
+                       "[theta, theta', l - 1, l'] (with q_cross: Q = L L^T, L's diagonal "
+                       "sqrt(q))", low=0.0, tune=(1e-2, 1e2, 'log'))
+    q_cross: tuple = cross_weight_setting()
     r: float = setting(0.2469, 'input weight R on u', low=1e-9, tune=(1e-2, 1e2, 'log'))
 
 
@@ -33,7 +35,8 @@ class LinearisedLqr(Law):
 
     def __init__(self, settings=None, **kwargs):
         super().__init__(settings, **kwargs)
-        self.gain = continuous_lqr_gain(self.settings.q, self.settings.r)[0]
+        self.gain = continuous_lqr_gain(
+            state_cost_matrix(self.settings.q, self.settings.q_cross), self.settings.r)[0]
 
     def compute(self, x):
         planar = np.asarray(x)[:dynamics.PLANAR_DIM]

@@ -5,12 +5,33 @@ import scipy.linalg
 from tsr_sim import dynamics
 
 
+def state_cost_matrix(q, q_cross=None):
+    """Q = L L^T on the state, L lower-triangular with diagonal sqrt(q) and, below it, the
+    entries `q_cross` row by row (L10, L20, L21, L30, L31, L32); no cross terms: diag(q).
+    The factor form makes every setting a valid (positive semidefinite) weight, so a search
+    over the cross terms wastes no trial."""
+    q = np.asarray(q, dtype=float)
+    if q.ndim != 1 or not np.all(q >= 0.0):
+        raise ValueError(f'state weights must be numbers >= 0, got {q.tolist()}')
+    factor = np.diag(np.sqrt(q))
+    if q_cross is not None:
+        below = np.tril_indices(q.size, -1)
+        cross = np.asarray(q_cross, dtype=float)
+        if cross.shape != below[0].shape:
+            raise ValueError(f'{below[0].size} cross terms for {q.size} state weights, got '
+                             f'{cross.size}')
+        factor[below] = cross
+    return factor @ factor.T
+
+
 def continuous_lqr_gain(q, r):
     """K (4,) of u = 3 - K x for the plant linearised at x = 0, u = 3 (`dynamics.linearise`)
-    with Q = diag(q), R = r, and the CARE's P (the cost-to-go x'Px)."""
+    with Q = diag(q) (q a vector) or Q = q (a 4 x 4 matrix), R = r, and the CARE's P (the
+    cost-to-go x'Px)."""
     a, b = dynamics.linearise()
     r = np.atleast_2d(float(r))
-    p = scipy.linalg.solve_continuous_are(a, b, np.diag(np.asarray(q, dtype=float)), r)
+    q = np.asarray(q, dtype=float)
+    p = scipy.linalg.solve_continuous_are(a, b, q if q.ndim == 2 else np.diag(q), r)
     return np.linalg.solve(r, b.T @ p)[0], p
 
 

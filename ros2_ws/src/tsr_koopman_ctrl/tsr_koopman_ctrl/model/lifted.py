@@ -147,7 +147,8 @@ class LiftedModel:
         return self.psi_x(origin), float(self.psi_u(origin, self.config.anchor_tension))
 
     def state_weight(self, spec):
-        """Q' on the lifted state: 'lifted' (I), 'state' (C^T C) or C^T diag(q) C for q of n."""
+        """Q' on the lifted state: 'lifted' (I), 'state' (C^T C), C^T diag(q) C for q of n, or
+        C^T Q C for a positive semidefinite n x n Q."""
         c = self.C
         if isinstance(spec, str):
             weights = {'lifted': np.eye(c.shape[1]), 'state': c.T @ c}
@@ -156,6 +157,11 @@ class LiftedModel:
                                  f'got {spec!r}')
             return weights[spec]
         q = np.asarray(spec, dtype=float)
+        if q.shape == (self.n, self.n):
+            if not (np.allclose(q, q.T) and np.linalg.eigvalsh(q).min() >= -1e-9):
+                raise ValueError(f'a state weight matrix must be symmetric positive '
+                                 f'semidefinite, got {q.tolist()}')
+            return c.T @ q @ c
         if q.shape != (self.n,) or not np.all(q >= 0.0):
             raise ValueError(f'state weights must be {self.n} numbers >= 0, got {spec!r}')
         return c.T @ np.diag(q) @ c

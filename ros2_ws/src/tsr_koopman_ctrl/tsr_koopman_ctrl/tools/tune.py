@@ -2,7 +2,7 @@
 
     python -m tsr_koopman_ctrl.tools.tune --law linear_lqr [--trials 60] [--jobs 2]
         [--storage out/tune/linear_lqr.journal | postgresql://...] [--swing-max 0.8]
-        [--fix SETTING=VALUE] [--objective settle|ratio|worst-ratio|swing]
+        [--fix SETTING=VALUE] [--also SETTING] [--objective settle|ratio|worst-ratio|swing]
 
 The search space is each setting's `tune` entry in its law's Settings class (the one
 declaration). A trial closes the law on the dynamics module (step-identical to the DDS loop) from
@@ -22,6 +22,8 @@ best settings are scored on the held-out starts (`HELD_OUT_STARTS`), which the t
 saw, and written to <out>/<study>.json and .md.
 `--fix` holds a setting out of the search: koopman_lqr's q only counts with state_weight
 'state', and a joint search samples that form a few times only (4 of 60 trials in docs/tuning).
+`--also` adds a setting the default search leaves out: `q_cross`, the cross terms of the
+quadratic-cost laws' state weight (six more dimensions).
 """
 
 import argparse
@@ -51,17 +53,19 @@ OBJECTIVES = {'settle': ('settle_tau', PENALTY_TAU, 'mean', 'mean settle tau'),
               'swing': ('swing', PENALTY_SWING, 'max', 'largest swing [rad]')}
 
 
-def tunable(law):
-    """[(setting, default, tune spec)] of a law."""
+def tunable(law, also=()):
+    """[(setting, default, tune spec)] of a law: the settings searched by default and those
+    named in `also` (searched only when asked, e.g. q_cross)."""
     return [(name, default, meta['tune']) for name, default, meta in
-            fields(law_class(law).Settings) if meta.get('tune') is not None]
+            fields(law_class(law).Settings) if meta.get('tune') is not None
+            and (meta.get('searched', True) or name in also)]
 
 
-def suggest(trial, law, fixed=None):
+def suggest(trial, law, fixed=None, also=()):
     """Settings of a trial, sampled from each setting's `tune` entry; `fixed`: {setting: value}
-    held out of the search."""
+    held out of the search; `also`: settings searched only when asked."""
     settings = dict(fixed or {})
-    for name, default, spec in tunable(law):
+    for name, default, spec in tunable(law, also):
         if name in settings:
             continue
         if isinstance(spec, list) and spec and isinstance(spec[0], str):
@@ -81,10 +85,10 @@ def number(trial, name, spec, integer=False):
     return trial.suggest_float(name, low, high, log=scale == 'log')
 
 
-def as_params(law, settings, fixed=None):
+def as_params(law, settings, fixed=None, also=()):
     """The inverse of `suggest`: Optuna parameters of given settings (to enqueue a trial)."""
     params = {}
-    for name, default, spec in tunable(law):
+    for name, default, spec in tunable(law, also):
         if name in (fixed or {}):
             continue
         value = settings.get(name, default)
@@ -119,6 +123,7 @@ def study_name(args):
     # A fixed value may be a path ('model=models/x'): only safe characters go into file names.
     fixed = ''.join('_' + re.sub(r'[^A-Za-z0-9.-]+', '-', text.replace('=', '-'))
                     for text in args.fix)
+    fixed += ''.join(f'_with-{name}' for name in args.also)
     objective = '' if args.objective == 'settle' else '_' + args.objective
     return args.study or f'{args.law}{fixed}{objective}_swing{args.swing_max:g}'
 
@@ -133,6 +138,11 @@ def fixed_settings(args):
     # Out of range, not a choice, the wrong length: one line now rather than 60 trials that
     # all score the penalty.
     settings(**fixed)
+    searchable = {name for name, _, meta in fields(settings) if meta.get('tune') is not None}
+    for name in args.also:
+        if name not in searchable:
+            raise ValueError(f'--also {name}: {args.law} has no such searchable setting; '
+                             f'searchable: {sorted(searchable)}')
     return fixed
 
 
@@ -165,11 +175,12 @@ def worker(args):
     from optuna.study import MaxTrialsCallback
     study = open_study(args)
     if len(study.trials) == 0 and args.worker == 0:
-        study.enqueue_trial(as_params(args.law, {}, args.fixed))   # the law's own settings
+        # the law's own settings
+        study.enqueue_trial(as_params(args.law, {}, args.fixed, args.also))
     states = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL)
 
     def objective(trial):
-        settings = suggest(trial, args.law, args.fixed)
+        settings = suggest(trial, args.law, args.fixed, args.also)
         value, runs = score(args.law, settings, COMPARISON_STARTS, args.swing_max, args.steps,
                             args.objective)
         trial.set_user_attr('settings', {k: list(v) if isinstance(v, tuple) else v
@@ -218,6 +229,7 @@ def report(args, study):
             results[f'{label}_{tag}'] = {'score': value, 'runs': runs}
     summary = {'law': args.law, 'study': study_name(args), 'trials': finished(study),
                'swing_max': args.swing_max, 'objective': args.objective, 'fixed': args.fix,
+               'also': args.also,
                'best_value': best.value,
                'best_settings': {k: list(v) if isinstance(v, tuple) else v
                                  for k, v in settings.items()},
@@ -269,6 +281,9 @@ def parser():
     p.add_argument('--fix', action='append', default=[], metavar='SETTING=VALUE',
                    help='hold a setting at a value instead of tuning it (repeatable; e.g. '
                    'state_weight=state for koopman_lqr)')
+    p.add_argument('--also', action='append', default=[], metavar='SETTING',
+                   help='search a setting that is left out by default (repeatable; e.g. '
+                   "q_cross: the state weight's cross terms)")
     p.add_argument('--worker', type=int, default=None, help=argparse.SUPPRESS)
     return p
 
