@@ -24,6 +24,18 @@ def test_a_study_resumes_and_reports_on_held_out_starts(tmp_path):
     assert summary['results']['tuning_default']['runs'][0]['settle_tau'] == first['settle_tau']
 
 
+def test_the_laws_own_settings_are_a_trial_with_several_workers(tmp_path):
+    """Two workers on a fresh study: the default is enqueued before either starts (a worker
+    that checked for an empty study itself lost that race to its sibling)."""
+    import optuna
+    args = ['--law', 'linear_lqr', '--steps', '200', '--out', str(tmp_path)]
+    assert tune.main([*args, '--trials', '2', '--jobs', '2']) == 0
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(
+        str(tmp_path / 'linear_lqr_swing0.8.journal')))
+    study = optuna.load_study(study_name='linear_lqr_swing0.8', storage=storage)
+    assert tune.as_params('linear_lqr', {}) in [t.params for t in study.trials]
+
+
 def test_the_search_space_comes_from_the_settings_classes():
     import optuna
     trial = optuna.trial.FixedTrial({'q_0': 2.0, 'q_1': 3.0, 'q_2': 4.0, 'q_3': 5.0, 'r': 0.5})

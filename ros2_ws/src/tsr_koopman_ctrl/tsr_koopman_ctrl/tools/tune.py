@@ -174,9 +174,6 @@ def worker(args):
     import optuna
     from optuna.study import MaxTrialsCallback
     study = open_study(args)
-    if len(study.trials) == 0 and args.worker == 0:
-        # the law's own settings
-        study.enqueue_trial(as_params(args.law, {}, args.fixed, args.also))
     states = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL)
 
     def objective(trial):
@@ -203,6 +200,10 @@ def run_workers(args, argv):
     """--jobs processes on the one study, with a progress bar over its finished trials."""
     from tqdm import tqdm
     study = open_study(args)
+    if len(study.trials) == 0:
+        # The law's own settings first. Enqueued here, before any worker starts: a worker that
+        # checked for an empty study itself could find its sibling's first trial there.
+        study.enqueue_trial(as_params(args.law, {}, args.fixed, args.also))
     procs = [subprocess.Popen([sys.executable, '-m', 'tsr_koopman_ctrl.tools.tune', *argv,
                                '--worker', str(i)]) for i in range(args.jobs)]
     with tqdm(total=args.trials, desc=study_name(args), unit='trial', file=sys.stdout) as bar:
