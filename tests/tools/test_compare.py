@@ -60,6 +60,11 @@ def test_a_law_with_hand_picked_defaults_runs_once_unless_a_preset_names_it(
     assert [r['preset'] for r in rows] == ['defaults'] * 9 + ['untuned'] * 9
     # ... and the untuned rows ran the untuned settings, not the defaults again.
     assert all(a['swing'] != b['swing'] for a, b in zip(rows[:9], rows[9:]))
+    # A preset file that does not name a tuned law leaves it out (rather than running its
+    # defaults under the file's name).
+    assert compare.main(['--laws', 'fractional_pd', '--presets', str(without), '--steps', '200',
+                         '--out', str(tmp_path)]) == 0
+    assert json.loads((tmp_path / 'comparison.json').read_text()) == []
     # A repeated preset runs once.
     assert compare.main(['--laws', 'linear_lqr', '--presets', 'untuned', 'untuned',
                          '--steps', '200', '--out', str(tmp_path)]) == 0
@@ -84,3 +89,25 @@ def test_the_ratio_tuned_preset_holds_each_law_s_tuning_result():
                 assert values[name] == value
             else:   # the file holds 4 significant digits
                 assert values[name] == pytest.approx(value, rel=5e-4), (law, name)
+
+
+def test_the_cross_term_preset_holds_each_law_s_best_search():
+    """config/tuned_cross.yaml: per law, the best result on the tuning starts of its searches
+    with the state weight's cross terms (docs/tuning/q_cross/<run>/)."""
+    from conftest import ROOT
+    tuned_cross = preset('tuned_cross')
+    assert set(tuned_cross) == {'linear_lqr', 'koopman_lqr', 'koopman_mpc'}
+    fixed_in_study = {'koopman_lqr': '_state-weight-state',
+                      'koopman_mpc': '_model-koopman-block_horizon-30'}
+    for law, values in tuned_cross.items():
+        name = f'{law}{fixed_in_study.get(law, "")}_with-q_cross_worst-ratio_swing0.8.json'
+        records = [json.loads(path.read_text())
+                   for path in (ROOT / 'docs' / 'tuning' / 'q_cross').glob(f'seed*/{name}')]
+        assert len(records) >= 2, law     # two seeds at least, the same for every law
+        best = min(records, key=lambda r: r['best_value'])['best_settings']
+        assert len(best['q_cross']) == 6 and any(best['q_cross'])
+        for setting, value in best.items():
+            if isinstance(value, str):
+                assert values[setting] == value
+            else:   # the file holds 4 significant digits
+                assert values[setting] == pytest.approx(value, rel=5e-4), (law, setting)

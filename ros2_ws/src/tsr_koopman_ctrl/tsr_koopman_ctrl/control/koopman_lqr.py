@@ -32,7 +32,7 @@ class KoopmanLqrSettings(LawSettings):
     q: tuple = setting((0.2273, 1.1, 1.209, 1.507), "state weights q of Q' = C^T diag(q) C "
                        "(state_weight 'state')", low=0.0, tune=(1e-2, 1e2, 'log'))
     # Searched in [-1, 1], not [-10, 10]: with the wider box 199 of 201 trials swung past
-    # 0.8 rad (docs/tuning/koopman_lqr_state-weight-state_with-q_cross_worst-ratio_swing0.8.md).
+    # 0.8 rad (docs/tuning/q_cross/koopman_lqr_bound10/).
     q_cross: tuple = cross_weight_setting(search_bound=1.0)
 
 

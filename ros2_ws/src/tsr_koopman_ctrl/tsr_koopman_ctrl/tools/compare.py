@@ -7,7 +7,9 @@ ROS-free (the DDS loop is step-identical).
 Every law runs offset-free (the default observer) with its settings from a preset: 'tuned' (the
 laws' defaults, set by tools/tune.py on the mean settle time), 'tuned_ratio' (config/
 tuned_ratio.yaml: tools/tune.py --objective worst-ratio, every law the NMPC included) or
-'untuned' (config/untuned.yaml). Per run: settle time
+'untuned' (config/untuned.yaml), or 'tuned_cross' (config/tuned_cross.yaml: the
+quadratic-cost laws tuned for the ratio with the state weight's cross terms); a preset file
+shows the laws it names. Per run: settle time
 into the 1% zone, swing, the frontier at that swing from that start (evaluation/frontier.py,
 computed by the project's own minimum-time solver) and the ratio, tension integral and peak,
 the law's compute time per step (median, p99) and solver fallbacks. Writes comparison.md,
@@ -64,6 +66,8 @@ def compare(laws, presets, steps, theta_max=None):
                     continue
                 defaults_shown.add(law)
                 label = 'defaults'
+            elif name != 'tuned' and law not in values:
+                continue    # a preset file shows the laws it names, not defaults under its name
             settings = dict(values.get(law, {}))
             if theta_max is not None:
                 settings['theta_max'] = theta_max
@@ -123,7 +127,8 @@ def main(argv=None):
     p.add_argument('--laws', nargs='+', default=sorted(CONTROLLERS), choices=sorted(CONTROLLERS))
     p.add_argument('--presets', nargs='+', default=['untuned', 'tuned', 'tuned_ratio'],
                    help="settings presets: 'tuned' (the laws' defaults), or a parameter file "
-                   "by path or by name under config/ ('untuned', 'tuned_ratio')")
+                   "by path or by name under config/ ('untuned', 'tuned_ratio', "
+                   "'tuned_cross'); a file shows the laws it names")
     p.add_argument('--steps', type=int, default=2000)
     p.add_argument('--theta-max', type=float, metavar='RAD',
                    help='a swing bound for the laws that take one (koopman_mpc: soft, '
