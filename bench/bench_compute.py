@@ -31,7 +31,7 @@ def main():
     parser.add_argument('--offset-free', action='store_true',
                         help='wrap each law in the disturbance observer (the node default)')
     parser.add_argument('--preset', help="settings preset, by path or by name under config/ "
-                        "('untuned', 'tuned_ratio'; default: the laws' defaults)")
+                        "('untuned', 'tuned_ratio', 'tuned_cross'; default: the laws' defaults)")
     args = parser.parse_args()
     try:
         settings = preset(args.preset) if args.preset else {}

@@ -157,14 +157,14 @@ class LiftedModel:
                                  f'got {spec!r}')
             return weights[spec]
         q = np.asarray(spec, dtype=float)
-        if q.shape == (self.n, self.n):
-            if not (np.allclose(q, q.T) and np.linalg.eigvalsh(q).min() >= -1e-9):
-                raise ValueError(f'a state weight matrix must be symmetric positive '
-                                 f'semidefinite, got {q.tolist()}')
-            return c.T @ q @ c
-        if q.shape != (self.n,) or not np.all(q >= 0.0):
-            raise ValueError(f'state weights must be {self.n} numbers >= 0, got {spec!r}')
-        return c.T @ np.diag(q) @ c
+        if q.shape == (self.n,):
+            q = np.diag(q)      # one check below: a diagonal is semidefinite iff q >= 0
+        if q.shape != (self.n, self.n) or not (
+                np.allclose(q, q.T) and np.linalg.eigvalsh(q).min() >= -1e-9):
+            raise ValueError(f'state weights must be {self.n} numbers >= 0 or a symmetric '
+                             f'positive semidefinite {self.n} x {self.n} matrix, got '
+                             f'{np.asarray(spec).tolist()}')
+        return c.T @ q @ c
 
     def psi_x(self, x):
         x = np.asarray(x, dtype=float)
