@@ -167,9 +167,7 @@ def test_cross_tuned_koopman_mpc_settles_with_an_actuator_unlike_its_model(varia
     from tsr_sim.plant import plant_parameters
     settings = preset('tuned_cross')['koopman_mpc']
     for x0 in COMPARISON_STARTS:
-        law = make_controller('koopman_mpc', **settings)
-        states, u = closed_loop(law, x0, 1000, plant=plant_parameters(variant))
-        figures = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, u,
-                              start=x0, halted=len(states) <= 1000)
+        figures = closed_loop_figures(make_controller('koopman_mpc', **settings), x0, 1000,
+                                      plant=plant_parameters(variant))
         assert figures['settle_tau'] is not None and figures['settle_tau'] < 5.0, (variant, x0)
-        assert law.fallbacks == 0
+        assert figures['fallbacks'] == 0

@@ -59,11 +59,12 @@ def run_figures(tau, states, tensions, start=None, halted=False):
     }
 
 
-def closed_loop_figures(law, start, steps=2000):
+def closed_loop_figures(law, start, steps=2000, **loop):
     """`run_figures` of `law` closed on the dynamics module from `start` for `steps` steps (the
-    DDS loop is step-identical to this one), with the law's solver fallbacks."""
+    DDS loop is step-identical to this one), with the law's solver fallbacks; `loop`: the
+    options of `control.closed_loop` (e.g. `plant`, a plant unlike the model)."""
     from tsr_koopman_ctrl.control.loop import closed_loop
-    states, tensions = closed_loop(law, start, steps)
+    states, tensions = closed_loop(law, start, steps, **loop)
     figures = run_figures(np.arange(len(states)) * PAPER_STEP, states, tensions, start=start,
                           halted=len(states) <= steps)
     figures['fallbacks'] = getattr(law, 'fallbacks', 0)
