@@ -95,3 +95,36 @@ def test_the_swing_objective_scores_the_largest_swing_of_settled_runs():
         tune.PENALTY_SWING
     # 30 steps settle nowhere: every start scores the penalty.
     assert tune.score('linear_lqr', {}, starts, 0.8, 30, 'swing')[0] == tune.PENALTY_SWING
+
+
+def test_the_graded_penalty_grows_with_how_far_a_run_missed():
+    starts = COMPARISON_STARTS[:2]
+    # The same runs, flat and graded: under a 0.1-rad bound both starts swing past it.
+    flat, runs = tune.score('linear_lqr', {}, starts, 0.1, 1000, 'worst-ratio')
+    graded, _ = tune.score('linear_lqr', {}, starts, 0.1, 1000, 'worst-ratio', graded=True)
+    assert flat == tune.PENALTY_RATIO
+    past = max(r['swing'] for r in runs) - 0.1     # every run settled, so no unsettled 1
+    assert all(r['settle_tau'] is not None for r in runs) and past > 0.3
+    assert graded == pytest.approx(tune.PENALTY_RATIO + past)
+    # A looser bound misses by less and scores less; a run within it scores its ratio.
+    looser, _ = tune.score('linear_lqr', {}, starts, 0.3, 1000, 'worst-ratio', graded=True)
+    assert tune.PENALTY_RATIO < looser < graded
+    within, _ = tune.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio', graded=True)
+    assert within == tune.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio')[0] < 2.0
+    # 30 steps settle nowhere (one each), a law that cannot be built scores the cap.
+    assert tune.score('linear_lqr', {}, starts, 0.8, 30, 'settle', graded=True)[0] == \
+        tune.PENALTY_TAU + 1.0
+    assert tune.score('linear_lqr', {'r': -1.0}, starts, 0.8, 30, 'settle', graded=True)[0] == \
+        tune.PENALTY_TAU + tune.MISS_CAP
+
+
+def test_a_study_keeps_its_penalty_and_names_it(tmp_path, capsys):
+    args = ['--law', 'linear_lqr', '--steps', '300', '--out', str(tmp_path), '--trials', '1',
+            '--swing-max', '0.1']
+    assert tune.main([*args, '--penalty', 'graded']) == 0
+    summary = json.loads((tmp_path / 'linear_lqr_graded_swing0.1.json').read_text())
+    assert summary['penalty'] == 'graded' and summary['best_value'] > tune.PENALTY_TAU
+    assert 'the trial that missed least' in capsys.readouterr().out
+    journal = str(tmp_path / 'linear_lqr_graded_swing0.1.journal')
+    assert tune.main([*args, '--storage', journal, '--study', 'linear_lqr_graded_swing0.1']) == 1
+    assert 'was tuned on --penalty graded, not flat' in capsys.readouterr().err

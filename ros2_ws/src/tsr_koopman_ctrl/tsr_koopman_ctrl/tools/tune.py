@@ -3,6 +3,7 @@
     python -m tsr_koopman_ctrl.tools.tune --law linear_lqr [--trials 60] [--jobs 2]
         [--storage out/tune/linear_lqr.journal | postgresql://...] [--swing-max 0.8]
         [--fix SETTING=VALUE] [--also SETTING] [--objective settle|ratio|worst-ratio|swing]
+        [--penalty flat|graded]
 
 The search space is each setting's `tune` entry in its law's Settings class (the one
 declaration). A trial closes the law on the dynamics module (step-identical to the DDS loop) from
@@ -12,8 +13,10 @@ time over the minimum time at the run's own swing, `evaluation.frontier`, so a l
 by swinging wider), the largest frontier ratio ('worst-ratio': the issue's targets are "from
 every start") or the largest swing ('swing': can any setting hold a bound at all); a start
 that does not settle, halts, or swings beyond --swing-max scores PENALTY_TAU (settle) or
-PENALTY_RATIO, flat (the search gets no signal from how far a trial missed), and a study that
-never scored under it says so in its report. A study keeps the objective it was started with.
+PENALTY_RATIO, flat by default; with `--penalty graded` the penalty grows with how far the run
+missed (radians past the swing bound, plus one if it did not settle), so a search whose first
+trials all miss still learns which way is better. A study that never scored under the penalty
+says so in its report. A study keeps the objective and the penalty it was started with.
 The law's own settings are the first trial, so tuning never reports worse than the default.
 The study lives in Optuna's storage: a journal file here (several processes share it: --jobs
 starts them; a second command with another --seed adds workers), a database URL where users
@@ -33,6 +36,8 @@ import subprocess
 import sys
 import time
 
+import numpy as np
+
 from tsr_koopman_ctrl.control import CONTROLLERS, make_controller
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import fields, parse_value
@@ -45,6 +50,8 @@ PENALTY_TAU = 40.0
 PENALTY_RATIO = 10.0
 #: A run that does not settle under the 'swing' objective (a tumble is beyond pi anyway).
 PENALTY_SWING = 10.0
+#: A graded miss counts at most this much above the penalty (a law that cannot be built).
+MISS_CAP = 10.0
 #: objective -> (figure a start scores, its penalty, how the starts' scores combine, the
 #: score's name in the report)
 OBJECTIVES = {'settle': ('settle_tau', PENALTY_TAU, 'mean', 'mean settle tau'),
@@ -99,24 +106,36 @@ def as_params(law, settings, fixed=None, also=()):
     return params
 
 
-def score(law, settings, starts, swing_max, steps, objective='settle'):
+def score(law, settings, starts, swing_max, steps, objective='settle', graded=False):
     """(score over starts per `objective`, per-start figures), the law built as the node builds
-    it (offset-free by default). A law that cannot be built scores the penalty everywhere."""
+    it (offset-free by default). A law that cannot be built scores the penalty everywhere
+    (`graded`: plus MISS_CAP); with `graded` a start that misses scores the penalty plus
+    `miss`."""
     figure, penalty, combine, _ = OBJECTIVES[objective]
     try:
         controller = make_controller(law, **settings)
     except ValueError as error:
-        return penalty, [{'error': str(error)}] * len(starts)
+        return penalty + (MISS_CAP if graded else 0.0), [{'error': str(error)}] * len(starts)
+    bound = None if figure == 'swing' else swing_max   # 'swing': how far, whatever the bound
     runs, scores = [], []
     for start in starts:
         figures = closed_loop_figures(controller, start, steps)
-        if figure == 'swing':   # how far it swings on the way, whatever the bound
-            ok = figures['settle_tau'] is not None
-        else:
-            ok = figures[figure] is not None and figures['swing'] <= swing_max
-        scores.append(figures[figure] if ok else penalty)
+        missed = miss(figures, bound)
+        if missed == 0.0 and figures[figure] is not None:
+            scores.append(figures[figure])
+        else:   # (a settled run of a start without a tabulated frontier has no ratio)
+            scores.append(penalty + (missed if graded else 0.0))
         runs.append(figures)
     return (max(scores) if combine == 'max' else sum(scores) / len(scores)), runs
+
+
+def miss(figures, swing_max=None):
+    """How far a run missed: radians past `swing_max` (None: no bound) plus one if it did not
+    settle, at most MISS_CAP; 0.0 for a run that counts."""
+    past = 0.0 if swing_max is None else max(0.0, figures['swing'] - swing_max)
+    unsettled = 1.0 if figures['settle_tau'] is None else 0.0
+    total = past + unsettled
+    return MISS_CAP if not np.isfinite(total) else min(total, MISS_CAP)
 
 
 def study_name(args):
@@ -125,7 +144,8 @@ def study_name(args):
                     for text in args.fix)
     fixed += ''.join(f'_with-{name}' for name in args.also)
     objective = '' if args.objective == 'settle' else '_' + args.objective
-    return args.study or f'{args.law}{fixed}{objective}_swing{args.swing_max:g}'
+    penalty = '' if args.penalty == 'flat' else '_' + args.penalty
+    return args.study or f'{args.law}{fixed}{objective}{penalty}_swing{args.swing_max:g}'
 
 
 def fixed_settings(args):
@@ -160,12 +180,14 @@ def open_study(args):
                                 direction='minimize', load_if_exists=True,
                                 sampler=optuna.samplers.TPESampler(seed=args.seed + args.worker))
     # A study holds one objective: settle times and ratios in one study would be compared.
-    recorded = study.user_attrs.get('objective')
-    if recorded is None:
-        study.set_user_attr('objective', args.objective)
-    elif recorded != args.objective:
-        raise ValueError(f'study {study_name(args)!r} was tuned on --objective {recorded}, '
-                         f'not {args.objective}')
+    # Studies from before --penalty have no such attribute: they were flat.
+    for option, default in (('objective', None), ('penalty', 'flat')):
+        recorded = study.user_attrs.get(option, default if study.trials else None)
+        if recorded is None:
+            study.set_user_attr(option, getattr(args, option))
+        elif recorded != getattr(args, option):
+            raise ValueError(f'study {study_name(args)!r} was tuned on --{option} {recorded}, '
+                             f'not {getattr(args, option)}')
     return study
 
 
@@ -179,7 +201,7 @@ def worker(args):
     def objective(trial):
         settings = suggest(trial, args.law, args.fixed, args.also)
         value, runs = score(args.law, settings, COMPARISON_STARTS, args.swing_max, args.steps,
-                            args.objective)
+                            args.objective, args.penalty == 'graded')
         trial.set_user_attr('settings', {k: list(v) if isinstance(v, tuple) else v
                                          for k, v in settings.items()})
         trial.set_user_attr('settle', [r.get('settle_tau') for r in runs])
@@ -226,10 +248,11 @@ def report(args, study):
     for label, starts in (('tuning', COMPARISON_STARTS), ('held_out', HELD_OUT_STARTS)):
         for tag, values in (('default', dict(args.fixed)), ('tuned', settings)):
             value, runs = score(args.law, values, starts, args.swing_max, args.steps,
-                                args.objective)
+                                args.objective, args.penalty == 'graded')
             results[f'{label}_{tag}'] = {'score': value, 'runs': runs}
     summary = {'law': args.law, 'study': study_name(args), 'trials': finished(study),
-               'swing_max': args.swing_max, 'objective': args.objective, 'fixed': args.fix,
+               'swing_max': args.swing_max, 'objective': args.objective,
+               'penalty': args.penalty, 'fixed': args.fix,
                'also': args.also,
                'best_value': best.value,
                'best_settings': {k: list(v) if isinstance(v, tuple) else v
@@ -241,8 +264,10 @@ def report(args, study):
              f'({score_name}) on the tuning starts (swing <= '
              f'{args.swing_max:g} rad)', f"best settings: {summary['best_settings']}", '']
     if best.value >= penalty:
+        closest = ('the trial that missed least' if args.penalty == 'graded'
+                   else 'only the first such trial')
         lines[-1:-1] = [f'No trial scored under the penalty ({penalty:g}) from every tuning '
-                        'start: the "best settings" are only the first such trial.']
+                        f'start: the "best settings" are {closest}.']
     lines += [
              '| starts | settings | settle tau per start (swing, frontier ratio) | score |',
              '|---|---|---|---|']
@@ -274,6 +299,10 @@ def parser():
                    help="what a trial minimises over the tuning starts: mean settle time, mean "
                    "or largest frontier ratio at the run's own swing, or the largest swing "
                    "(a run that does not settle scores the penalty)")
+    p.add_argument('--penalty', choices=('flat', 'graded'), default='flat',
+                   help="a start that misses (does not settle, swings past --swing-max) "
+                   "scores the penalty ('flat') or the penalty plus how far it missed: radians "
+                   "past the bound, plus one if it did not settle ('graded')")
     p.add_argument('--swing-max', type=float, default=0.8, help='largest |theta| a run may '
                    'reach and still count as settled [rad]')
     p.add_argument('--steps', type=int, default=2000)
