@@ -1,0 +1,36 @@
+"""The linearised closed loop at the target, against scipy's CARE and the plant's Jacobians."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control.registry import law_class, preset
+from tsr_koopman_ctrl.evaluation.local_loop import local_closed_loop
+
+
+def test_the_linear_lqr_s_local_loop_is_its_continuous_design():
+    """u = 3 - K x: the gain read off the law is -K, K from scipy's CARE on the analytic
+    Jacobians; the sampled loop's poles are the continuous A - B K's within the 0.01-tau hold."""
+    q, r = (4.0, 0.5, 2.0, 0.1), 0.3
+    loop = local_closed_loop(law_class('linear_lqr')(q=q, r=r))
+    a, b = dynamics.linearise()
+    riccati = scipy.linalg.solve_continuous_are(a, b, np.diag(q), np.array([[r]]))
+    gain = (b.T @ riccati / r).ravel()
+    assert loop['gain'] == pytest.approx(-gain, rel=1e-6)
+    expected = np.linalg.eigvals(a - b @ gain[None, :])
+    expected = expected[np.argsort(-expected.real)]
+    assert np.sort_complex(loop['poles']) == pytest.approx(np.sort_complex(expected), rel=0.03)
+    assert loop['slowest_decay'] == pytest.approx(-expected.real.max(), rel=0.03)
+    assert np.all(loop['damping'] > 0)
+
+
+def test_the_cross_tuned_koopman_lqr_settles_through_a_lightly_damped_pair():
+    """Why its held-out ratios (1.39..1.77) trail its tuning ones (1.25..1.56): near the target
+    its least damped pair is at zeta ~0.22 (the MPC's and the LQR's above 0.5), which starts with
+    theta0 = 0 barely excite (measured 2026-11-30)."""
+    settings = preset('tuned_cross')
+    zeta = {law: local_closed_loop(law_class(law)(**settings[law]))['damping'].min()
+            for law in ('linear_lqr', 'koopman_lqr', 'koopman_mpc')}
+    assert zeta['koopman_lqr'] < 0.3
+    assert zeta['koopman_mpc'] > 0.5 and zeta['linear_lqr'] > 0.5
