@@ -92,18 +92,20 @@ def test_the_ratio_tuned_preset_holds_each_law_s_tuning_result():
 
 
 def test_the_cross_term_preset_holds_each_law_s_best_search():
-    """config/tuned_cross.yaml: per law, the best result on the tuning starts of its searches
-    with the state weight's cross terms (docs/tuning/q_cross/<run>/)."""
+    """config/tuned_cross.yaml: per law, the best result on the tuning starts of its 400-trial
+    searches with the state weight's cross terms (docs/tuning/q_cross/seed*/, flat or graded
+    penalty; the 60-step and the continued MPC studies are experiments beside them)."""
     from conftest import ROOT
     tuned_cross = preset('tuned_cross')
     assert set(tuned_cross) == {'linear_lqr', 'koopman_lqr', 'koopman_mpc'}
     fixed_in_study = {'koopman_lqr': '_state-weight-state',
                       'koopman_mpc': '_model-koopman-block_horizon-30'}
     for law, values in tuned_cross.items():
-        name = f'{law}{fixed_in_study.get(law, "")}_with-q_cross_worst-ratio_swing0.8.json'
+        name = f'{law}{fixed_in_study.get(law, "")}_with-q_cross_worst-ratio*_swing0.8.json'
         records = [json.loads(path.read_text())
                    for path in (ROOT / 'docs' / 'tuning' / 'q_cross').glob(f'seed*/{name}')]
-        assert len(records) >= 2, law     # two seeds at least, the same for every law
+        assert len(records) >= 3, law     # three searches at least, the same for every law
+        assert all(r['trials'] <= 401 for r in records), law
         best = min(records, key=lambda r: r['best_value'])['best_settings']
         assert len(best['q_cross']) == 6 and any(best['q_cross'])
         for setting, value in best.items():
