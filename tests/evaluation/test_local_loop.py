@@ -34,3 +34,22 @@ def test_the_cross_tuned_koopman_lqr_settles_through_a_lightly_damped_pair():
             for law in ('linear_lqr', 'koopman_lqr', 'koopman_mpc')}
     assert zeta['koopman_lqr'] < 0.3
     assert zeta['koopman_mpc'] > 0.5 and zeta['linear_lqr'] > 0.5
+
+
+def test_near_the_target_the_koopman_lqr_is_the_lqr_of_its_model_s_linearisation():
+    """koopman_block's observables are locally invariant (A maps the lift's Jacobian into
+    itself, B lies in it), so the lifted LQR's gain read at the target is the discrete LQR of
+    the model's own linearisation with the same Q and R, mapped from u_hat to u."""
+    from tsr_koopman_ctrl.control.lqr import discrete_lqr_gain, state_cost_matrix
+    settings = preset('tuned_cross')['koopman_lqr']
+    law = law_class('koopman_lqr')(**settings)
+    jacobian, b_x = law.model.local_linear_model()
+    local_gain = discrete_lqr_gain(jacobian, np.reshape(b_x, (4, 1)),
+                                   state_cost_matrix(settings['q'], settings['q_cross']),
+                                   settings['r'])[0]
+    # u_hat = psi_ux(x) psi_uu(u): at the target du_hat/du = psi_ux(0) psi_uu'(3).
+    model, tension, step = law.model, dynamics.EQUILIBRIUM_TENSION, 1e-6
+    slope = (float(model.input_map(tension + step)) - float(model.input_map(tension - step))) \
+        / (2 * step) * float(model.psi_ux(np.zeros(4)))
+    # u_hat = u_hat_d - K e, so du/dx = -K dpsi/dx / (du_hat/du).
+    assert local_closed_loop(law)['gain'] == pytest.approx(-local_gain / slope, rel=1e-3)
