@@ -6,14 +6,13 @@ import numpy as np
 import pytest
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, frontier_tau, HELD_OUT_STARTS, min_time
+from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, frontier_tau, min_time
 from tsr_koopman_ctrl.evaluation.frontier import load_table, table_entry
+from tsr_koopman_ctrl.evaluation.starts import TABULATED_STARTS as ALL_STARTS
 from tsr_koopman_ctrl.tools import frontier as tool
 
-ALL_STARTS = COMPARISON_STARTS + HELD_OUT_STARTS
 
-
-def test_the_table_covers_every_comparison_and_held_out_start():
+def test_the_table_covers_every_comparison_held_out_and_tuning_start():
     table = load_table()
     assert table['provenance']['command'].startswith('python -m tsr_koopman_ctrl.tools.frontier')
     assert len(table['starts']) == len(ALL_STARTS)
@@ -63,9 +62,9 @@ def test_show_prints_the_table_and_bad_input_is_one_line(capsys):
     assert tool.main(['--show']) == 0
     out = capsys.readouterr().out
     assert out.count('\n') == 2 + len(ALL_STARTS) and '| 0 | [0.0, 0.0, -0.99, 0.5] |' in out
-    assert tool.main(['--start', '9']) == 2
+    assert tool.main(['--start', '11']) == 2
     err = capsys.readouterr().err
-    assert err.startswith('frontier: no start 9') and err.count('\n') == 1
+    assert err.startswith('frontier: no start 11') and err.count('\n') == 1
     with pytest.raises(SystemExit):
         tool.main(['--start', 'x'])
     assert capsys.readouterr().err.count('\n') == 1

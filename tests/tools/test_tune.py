@@ -128,3 +128,30 @@ def test_a_study_keeps_its_penalty_and_names_it(tmp_path, capsys):
     journal = str(tmp_path / 'linear_lqr_graded_swing0.1.journal')
     assert tune.main([*args, '--storage', journal, '--study', 'linear_lqr_graded_swing0.1']) == 1
     assert 'was tuned on --penalty graded, not flat' in capsys.readouterr().err
+
+
+def test_swing_starts_tune_on_six_starts_and_the_study_keeps_them(tmp_path, capsys):
+    from tsr_koopman_ctrl.evaluation import frontier_tau, HELD_OUT_STARTS
+    from tsr_koopman_ctrl.evaluation.starts import SWING_TUNING_STARTS
+    # The two extra starts begin with a swing, are no held-out start, and have frontier rows.
+    assert all(start[0] != 0.0 and start[1] != 0.0 for start in SWING_TUNING_STARTS)
+    assert not set(SWING_TUNING_STARTS) & set(HELD_OUT_STARTS + COMPARISON_STARTS)
+    assert all(frontier_tau(start, 0.8) is not None for start in SWING_TUNING_STARTS)
+    args = ['--law', 'linear_lqr', '--steps', '1000', '--out', str(tmp_path), '--trials', '1',
+            '--objective', 'worst-ratio']
+    assert tune.main([*args, '--starts', 'swing']) == 0
+    summary = json.loads(
+        (tmp_path / 'linear_lqr_worst-ratio_swing-starts_swing0.8.json').read_text())
+    assert summary['starts'] == 'swing'
+    assert summary['tuning_starts'] == [list(s) for s in COMPARISON_STARTS + SWING_TUNING_STARTS]
+    runs = summary['results']['tuning_default']['runs']
+    assert len(runs) == 6 and len(summary['results']['held_out_default']['runs']) == 5
+    # The score is the largest ratio over all six, the swing starts' included.
+    extra = [closed_loop_figures(LinearisedLqr(), s, 1000) for s in SWING_TUNING_STARTS]
+    assert [r['settle_tau'] for r in runs[4:]] == [f['settle_tau'] for f in extra]
+    assert summary['best_value'] == max(r['frontier_ratio'] for r in runs)
+    journal = str(tmp_path / 'linear_lqr_worst-ratio_swing-starts_swing0.8.journal')
+    capsys.readouterr()
+    assert tune.main([*args, '--storage', journal,
+                      '--study', 'linear_lqr_worst-ratio_swing-starts_swing0.8']) == 1
+    assert 'was tuned on --starts swing, not comparison' in capsys.readouterr().err

@@ -3,12 +3,13 @@
     python -m tsr_koopman_ctrl.tools.frontier [--start I ...] [--out PATH]
     python -m tsr_koopman_ctrl.tools.frontier --show [PATH]
 
-Starts are indexed in COMPARISON_STARTS + HELD_OUT_STARTS (0..8). A recompute solves, per
-start, the least swing and the minimum time under every swing bound of min_time.THETA_GRID
-(evaluation/min_time.py, needs casadi; 20 s to 6 min a bound on one core, about an hour for
-all nine starts), printing each row as it is done and writing the table after each start. An
-existing table at --out keeps its other starts, so a long recompute can be split with --start.
-To update the shipped table, point --out at tsr_koopman_ctrl/evaluation/frontier_table.json.
+Starts are indexed in `evaluation.starts.TABULATED_STARTS` (0..10: the comparison, held-out and
+swing tuning starts). A recompute solves, per start, the least swing and the minimum time under
+every swing bound of min_time.THETA_GRID (evaluation/min_time.py, needs casadi; 20 s to 6 min a
+bound on one core, about an hour for the first nine starts), printing each row as it is done and
+writing the table after each start. An existing table at --out keeps its other starts, so a long
+recompute can be split with --start. To update the shipped table, point --out at
+tsr_koopman_ctrl/evaluation/frontier_table.json.
 --show prints a table (default: the shipped one) as markdown.
 """
 
@@ -20,9 +21,8 @@ import os
 import sys
 
 from tsr_koopman_ctrl.evaluation.frontier import TABLE_PATH
-from tsr_koopman_ctrl.evaluation.starts import COMPARISON_STARTS, HELD_OUT_STARTS
+from tsr_koopman_ctrl.evaluation.starts import TABULATED_STARTS as STARTS
 
-STARTS = COMPARISON_STARTS + HELD_OUT_STARTS
 COMMAND = ('python -m tsr_koopman_ctrl.tools.frontier --out '
            'ros2_ws/src/tsr_koopman_ctrl/tsr_koopman_ctrl/evaluation/frontier_table.json'
            ' [--start I ...]')
@@ -210,7 +210,7 @@ def main(argv=None):
         bad = [i for i in indices if not 0 <= i < len(STARTS)]
         if bad:
             raise ValueError(f'no start {bad[0]}: starts are 0..{len(STARTS) - 1} '
-                             '(COMPARISON_STARTS + HELD_OUT_STARTS)')
+                             '(evaluation.starts.TABULATED_STARTS)')
         if os.path.isdir(args.out):
             raise ValueError(f'--out {args.out} is a directory; give a file name')
         if os.path.exists(args.out):

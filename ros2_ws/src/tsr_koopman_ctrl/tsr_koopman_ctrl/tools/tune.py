@@ -3,26 +3,26 @@
     python -m tsr_koopman_ctrl.tools.tune --law linear_lqr [--trials 60] [--jobs 2]
         [--storage out/tune/linear_lqr.journal | postgresql://...] [--swing-max 0.8]
         [--fix SETTING=VALUE] [--also SETTING] [--objective settle|ratio|worst-ratio|swing]
-        [--penalty flat|graded]
+        [--penalty flat|graded] [--starts comparison|swing]
 
-The search space is each setting's `tune` entry in its law's Settings class (the one
-declaration). A trial closes the law on the dynamics module (step-identical to the DDS loop) from
-every tuning start (`evaluation.starts.COMPARISON_STARTS`) and scores, per --objective, the mean
-settle time into the 1% zone ('settle', the default), the mean frontier ratio ('ratio': settle
-time over the minimum time at the run's own swing, `evaluation.frontier`, so a law gains nothing
-by swinging wider), the largest frontier ratio ('worst-ratio': the issue's targets are "from
-every start") or the largest swing ('swing': can any setting hold a bound at all); a start
-that does not settle, halts, or swings beyond --swing-max scores PENALTY_TAU (settle) or
-PENALTY_RATIO, flat by default; with `--penalty graded` the penalty grows with how far the run
-missed (radians past the swing bound, plus one if it did not settle), so a search whose first
-trials all miss still learns which way is better. A study that never scored under the penalty
-says so in its report. A study keeps the objective and the penalty it was started with.
-The law's own settings are the first trial, so tuning never reports worse than the default.
-The study lives in Optuna's storage: a journal file here (several processes share it: --jobs
-starts them; a second command with another --seed adds workers), a database URL where users
-have a server; running the command again resumes it up to --trials in total. At the end the
-best settings are scored on the held-out starts (`HELD_OUT_STARTS`), which the tuning never
-saw, and written to <out>/<study>.json and .md.
+The search space is each setting's `tune` entry in its law's Settings class (the one declaration).
+A trial closes the law on the dynamics module (step-identical to the DDS loop) from every tuning
+start (`evaluation.starts.COMPARISON_STARTS`; with `--starts swing` also `SWING_TUNING_STARTS`, two
+starts with an initial swing like the held-out ones) and scores, per --objective, the mean settle
+time into the 1% zone ('settle', the default), the mean frontier ratio ('ratio': settle time over
+the minimum time at the run's own swing, `evaluation.frontier`, so a law gains nothing by swinging
+wider), the largest frontier ratio ('worst-ratio': the issue's targets are "from every start") or
+the largest swing ('swing': can any setting hold a bound at all); a start that does not settle,
+halts, or swings beyond --swing-max scores PENALTY_TAU (settle) or PENALTY_RATIO, flat by default;
+with `--penalty graded` the penalty grows with how far the run missed (radians past the swing
+bound, plus one if it did not settle), so a search whose first trials all miss still learns which
+way is better. A study that never scored under the penalty says so in its report. A study keeps the
+objective, the penalty and the tuning starts it was started with. The law's own settings are the
+first trial, so tuning never reports worse than the default. The study lives in Optuna's storage: a
+journal file here (several processes share it: --jobs starts them; a second command with another
+--seed adds workers), a database URL where users have a server; running the command again resumes
+it up to --trials in total. At the end the best settings are scored on the held-out starts
+(`HELD_OUT_STARTS`), which the tuning never saw, and written to <out>/<study>.json and .md.
 `--fix` holds a setting out of the search: koopman_lqr's q only counts with state_weight
 'state', and a joint search samples that form a few times only (4 of 60 trials in docs/tuning).
 `--also` adds a setting the default search leaves out: `q_cross`, the cross terms of the
@@ -42,6 +42,7 @@ from tsr_koopman_ctrl.control import CONTROLLERS, make_controller
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import fields, parse_value
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS, HELD_OUT_STARTS
+from tsr_koopman_ctrl.evaluation.starts import SWING_TUNING_STARTS
 from tsr_koopman_ctrl.tools.report import write_results
 
 #: Score of a start that does not settle, halts or swings too far: twice the 20-tau run.
@@ -58,6 +59,9 @@ OBJECTIVES = {'settle': ('settle_tau', PENALTY_TAU, 'mean', 'mean settle tau'),
               'ratio': ('frontier_ratio', PENALTY_RATIO, 'mean', 'mean frontier ratio'),
               'worst-ratio': ('frontier_ratio', PENALTY_RATIO, 'max', 'largest frontier ratio'),
               'swing': ('swing', PENALTY_SWING, 'max', 'largest swing [rad]')}
+#: --starts -> the tuning starts a trial deploys from (never a held-out one).
+TUNING_STARTS = {'comparison': COMPARISON_STARTS,
+                 'swing': COMPARISON_STARTS + SWING_TUNING_STARTS}
 
 
 def tunable(law, also=()):
@@ -145,7 +149,9 @@ def study_name(args):
     fixed += ''.join(f'_with-{name}' for name in args.also)
     objective = '' if args.objective == 'settle' else '_' + args.objective
     penalty = '' if args.penalty == 'flat' else '_' + args.penalty
-    return args.study or f'{args.law}{fixed}{objective}{penalty}_swing{args.swing_max:g}'
+    starts = '' if args.starts == 'comparison' else f'_{args.starts}-starts'
+    return (args.study
+            or f'{args.law}{fixed}{objective}{penalty}{starts}_swing{args.swing_max:g}')
 
 
 def fixed_settings(args):
@@ -180,8 +186,9 @@ def open_study(args):
                                 direction='minimize', load_if_exists=True,
                                 sampler=optuna.samplers.TPESampler(seed=args.seed + args.worker))
     # A study holds one objective: settle times and ratios in one study would be compared.
-    # Studies from before --penalty have no such attribute: they were flat.
-    for option, default in (('objective', None), ('penalty', 'flat')):
+    # Studies from before --penalty and --starts have no such attribute: they were flat and
+    # tuned on the comparison starts.
+    for option, default in (('objective', None), ('penalty', 'flat'), ('starts', 'comparison')):
         recorded = study.user_attrs.get(option, default if study.trials else None)
         if recorded is None:
             study.set_user_attr(option, getattr(args, option))
@@ -200,8 +207,8 @@ def worker(args):
 
     def objective(trial):
         settings = suggest(trial, args.law, args.fixed, args.also)
-        value, runs = score(args.law, settings, COMPARISON_STARTS, args.swing_max, args.steps,
-                            args.objective, args.penalty == 'graded')
+        value, runs = score(args.law, settings, TUNING_STARTS[args.starts], args.swing_max,
+                            args.steps, args.objective, args.penalty == 'graded')
         trial.set_user_attr('settings', {k: list(v) if isinstance(v, tuple) else v
                                          for k, v in settings.items()})
         trial.set_user_attr('settle', [r.get('settle_tau') for r in runs])
@@ -245,19 +252,19 @@ def report(args, study):
     settings = {k: tuple(v) if isinstance(v, list) else v
                 for k, v in best.user_attrs['settings'].items()}
     results = {}
-    for label, starts in (('tuning', COMPARISON_STARTS), ('held_out', HELD_OUT_STARTS)):
+    for label, starts in (('tuning', TUNING_STARTS[args.starts]), ('held_out', HELD_OUT_STARTS)):
         for tag, values in (('default', dict(args.fixed)), ('tuned', settings)):
             value, runs = score(args.law, values, starts, args.swing_max, args.steps,
                                 args.objective, args.penalty == 'graded')
             results[f'{label}_{tag}'] = {'score': value, 'runs': runs}
     summary = {'law': args.law, 'study': study_name(args), 'trials': finished(study),
                'swing_max': args.swing_max, 'objective': args.objective,
-               'penalty': args.penalty, 'fixed': args.fix,
+               'penalty': args.penalty, 'starts': args.starts, 'fixed': args.fix,
                'also': args.also,
                'best_value': best.value,
                'best_settings': {k: list(v) if isinstance(v, tuple) else v
                                  for k, v in settings.items()},
-               'tuning_starts': [list(s) for s in COMPARISON_STARTS],
+               'tuning_starts': [list(s) for s in TUNING_STARTS[args.starts]],
                'held_out_starts': [list(s) for s in HELD_OUT_STARTS], 'results': results}
     _, penalty, _, score_name = OBJECTIVES[args.objective]
     lines = [f"{args.law}: {summary['trials']} trials, best score {best.value:.3f} "
@@ -303,6 +310,9 @@ def parser():
                    help="a start that misses (does not settle, swings past --swing-max) "
                    "scores the penalty ('flat') or the penalty plus how far it missed: radians "
                    "past the bound, plus one if it did not settle ('graded')")
+    p.add_argument('--starts', choices=sorted(TUNING_STARTS), default='comparison',
+                   help="the tuning starts: the four comparison starts ('comparison'), or those "
+                   "and two with an initial swing ('swing'); the held-out starts never")
     p.add_argument('--swing-max', type=float, default=0.8, help='largest |theta| a run may '
                    'reach and still count as settled [rad]')
     p.add_argument('--steps', type=int, default=2000)
