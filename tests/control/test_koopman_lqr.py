@@ -5,8 +5,9 @@ import pytest
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control import closed_loop, KoopmanLqr, make_controller, ObserverSettings
-from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, HELD_OUT_STARTS, run_figures,
-                                         settle_index)
+from tsr_koopman_ctrl.control.registry import preset
+from tsr_koopman_ctrl.evaluation import (closed_loop_figures, COMPARISON_STARTS,
+                                         HELD_OUT_STARTS, PAPER_START, run_figures, settle_index)
 
 BARE = ObserverSettings(disturbance='none')
 #: The paper's own cost (Q' = I, R' = 15): config/untuned.yaml.
@@ -60,3 +61,41 @@ def test_the_dense_default_model_does_not_deploy(x0):
     """Why koopman_lqr has a model of its own: on koopman_default it never settles."""
     states, _ = closed_loop(KoopmanLqr(model='koopman_default', **PAPER_COST), x0, 2000)
     assert len(states) < 2001 or settle_index(states) is None
+
+
+def cross_tuned():
+    """The cross-tuned preset of the law (config/tuned_cross.yaml): on koopman_block_fast."""
+    return {k: tuple(v) if isinstance(v, list) else v
+            for k, v in preset('tuned_cross')['koopman_lqr'].items()}
+
+
+def test_koopman_block_fast_observables_decay_within_0_95_per_step():
+    """Every |eig A| beyond 0.95 is one of the state block's (the model's own linearisation)."""
+    law = KoopmanLqr(**cross_tuned())
+    assert law.settings.model == 'koopman_block_fast'
+    values = np.linalg.eigvals(law.model.A)
+    local = np.linalg.eigvals(law.model.local_linear_model()[0])
+    slow = values[np.abs(values) > 0.95]
+    assert slow.size == 4 and all(np.min(np.abs(local - v)) < 1e-4 for v in slow)
+
+
+@pytest.mark.parametrize('x0', COMPARISON_STARTS + HELD_OUT_STARTS)
+def test_on_koopman_block_fast_the_cross_tuned_law_settles_within_1_35x_the_frontier(x0):
+    """Issue 14's bound for the paper's law is 1.6x; measured 1.25..1.32x (2026-12-01)."""
+    figures = closed_loop_figures(make_controller('koopman_lqr', **cross_tuned()), x0, 1500)
+    assert figures['frontier_ratio'] is not None and figures['frontier_ratio'] < 1.35, figures
+    assert figures['swing'] < 0.8
+
+
+def test_the_observable_feedforward_is_what_makes_it_fast():
+    """The same law with K_phi = 0 (the LQR of the model's state block alone, the same gain
+    near the target) settles 0.9 tau later from the paper's start (4.69 against 5.64 tau)."""
+    controller = make_controller('koopman_lqr', **cross_tuned())
+    with_lift = closed_loop_figures(controller, PAPER_START, 1500)['settle_tau']
+    law = controller.law
+    state_gain, observable_gain = law.observable_feedforward_split()
+    assert np.abs(observable_gain).max() > 0.0
+    law.gain = np.concatenate([state_gain, np.zeros_like(observable_gain)])
+    controller.reset()
+    without = closed_loop_figures(controller, PAPER_START, 1500)['settle_tau']
+    assert with_lift < 4.8 and without > with_lift + 0.5

@@ -25,21 +25,30 @@ def test_the_linear_lqr_s_local_loop_is_its_continuous_design():
     assert np.all(loop['damping'] > 0)
 
 
-def test_the_cross_tuned_koopman_lqr_settles_through_a_lightly_damped_pair():
-    """Why its held-out ratios (1.39..1.77) trail its tuning ones (1.25..1.56): near the target
-    its least damped pair is at zeta ~0.22 (the MPC's and the LQR's above 0.5), which starts with
-    theta0 = 0 barely excite (measured 2026-11-30)."""
+def test_on_koopman_block_the_cross_tuned_koopman_lqr_had_a_lightly_damped_pair():
+    """Why its held-out ratios on koopman_block (1.39..1.77) trailed its tuning ones
+    (1.25..1.56): near the target its least damped pair is at zeta ~0.22, which starts with
+    theta0 = 0 barely excite (measured 2026-11-30). On koopman_block_fast (the preset since
+    2026-12-01) the pair is damped like the MPC's and the LQR's (0.58; all above 0.5)."""
+    import json
+
+    from conftest import ROOT
+    record = ROOT / 'docs' / 'tuning' / 'q_cross' / 'seed0' / \
+        'koopman_lqr_state-weight-state_with-q_cross_worst-ratio_swing0.8.json'
+    on_block = json.loads(record.read_text())['best_settings']
+    assert local_closed_loop(law_class('koopman_lqr')(**on_block))['damping'].min() < 0.3
     settings = preset('tuned_cross')
+    assert settings['koopman_lqr']['model'] == 'koopman_block_fast'
     zeta = {law: local_closed_loop(law_class(law)(**settings[law]))['damping'].min()
             for law in ('linear_lqr', 'koopman_lqr', 'koopman_mpc')}
-    assert zeta['koopman_lqr'] < 0.3
-    assert zeta['koopman_mpc'] > 0.5 and zeta['linear_lqr'] > 0.5
+    assert min(zeta.values()) > 0.5, zeta
 
 
 def test_near_the_target_the_koopman_lqr_is_the_lqr_of_its_model_s_linearisation():
-    """koopman_block's observables are locally invariant (A maps the lift's Jacobian into
+    """A block model's observables are locally invariant (A maps the lift's Jacobian into
     itself, B lies in it), so the lifted LQR's gain read at the target is the discrete LQR of
-    the model's own linearisation with the same Q and R, mapped from u_hat to u."""
+    the model's own linearisation with the same Q and R, mapped from u_hat to u (here on
+    koopman_block_fast, the cross-tuned preset's model)."""
     from tsr_koopman_ctrl.control.lqr import discrete_lqr_gain, state_cost_matrix
     settings = preset('tuned_cross')['koopman_lqr']
     law = law_class('koopman_lqr')(**settings)

@@ -51,7 +51,7 @@ def test_bad_model_files_give_one_clear_line(tiny_model, tmp_path, damage, messa
 
 
 @pytest.mark.parametrize('name', ['koopman_default', 'koopman_paper', 'koopman_block',
-                                  'koopman_retrieval'])
+                                  'koopman_block_fast', 'koopman_retrieval'])
 def test_shipped_model_error_on_fresh_data_stays_under_its_record(name):
     model = lifted.LiftedModel.load(name)
     recorded = model.metadata['metrics']['test']['summed_mse']

@@ -94,17 +94,24 @@ def test_the_ratio_tuned_preset_holds_each_law_s_tuning_result():
 def test_the_cross_term_preset_holds_each_law_s_best_search():
     """config/tuned_cross.yaml: per law, the best result on the tuning starts of its 400-trial
     searches with the state weight's cross terms (docs/tuning/q_cross/seed*/, flat or graded
-    penalty; the 60-step and the continued MPC studies are experiments beside them)."""
+    penalty; the 60-step and the continued MPC studies are experiments beside them), except
+    koopman_lqr, whose preset plans on koopman_block_fast: the one search on that model
+    (block_fast/, run on its scratch copy, the same weights file)."""
     from conftest import ROOT
     tuned_cross = preset('tuned_cross')
     assert set(tuned_cross) == {'linear_lqr', 'koopman_lqr', 'koopman_mpc'}
     fixed_in_study = {'koopman_lqr': '_state-weight-state',
                       'koopman_mpc': '_model-koopman-block_horizon-30'}
+    searches = ROOT / 'docs' / 'tuning' / 'q_cross'
     for law, values in tuned_cross.items():
         name = f'{law}{fixed_in_study.get(law, "")}_with-q_cross_worst-ratio*_swing0.8.json'
-        records = [json.loads(path.read_text())
-                   for path in (ROOT / 'docs' / 'tuning' / 'q_cross').glob(f'seed*/{name}')]
+        records = [json.loads(path.read_text()) for path in searches.glob(f'seed*/{name}')]
         assert len(records) >= 3, law     # three searches at least, the same for every law
+        if law == 'koopman_lqr':
+            records = [json.loads((searches / 'block_fast' / 'koopman_lqr_r095.json')
+                                  .read_text())]
+            assert records[0]['best_settings'].pop('model').endswith('ft_r0.95')
+            assert values.pop('model') == 'koopman_block_fast'
         assert all(r['trials'] <= 401 for r in records), law
         best = min(records, key=lambda r: r['best_value'])['best_settings']
         assert len(best['q_cross']) == 6 and any(best['q_cross'])
