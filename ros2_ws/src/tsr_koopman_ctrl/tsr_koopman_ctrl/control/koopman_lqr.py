@@ -75,12 +75,12 @@ class KoopmanLqr(Law):
     def observable_feedforward_split(self, eps=1e-6):
         """(K_x, K_phi): the law's gain split as u_hat - u_hat_d = -(K_x x + K_phi phi(x)),
         phi(x) the observables less their linear part at the target (psi_x(x) - z_d =
-        [x; D x + phi(x)], D by central differences). K_x alone is the gain near the target;
-        K_phi phi(x) is what the lift adds away from it, a feedforward on observables the
-        model predicts to decay on their own (README, *Why the fast observables*)."""
+        [x; D x + phi(x)], D = `LiftedModel.lift_jacobian`'s observable rows). K_x alone is the
+        gain near the target; K_phi phi(x) is what the lift adds away from it, a feedforward on
+        observables the model predicts to decay on their own (README, *Why the fast
+        observables*)."""
         n = self.model.n
-        steps = eps * np.eye(n)
-        jacobian = ((self.model.psi_x(steps) - self.model.psi_x(-steps))[:, n:] / (2.0 * eps)).T
+        jacobian = self.model.lift_jacobian(eps=eps)[n:]
         return self.gain[:n] + self.gain[n:] @ jacobian, self.gain[n:].copy()
 
     def closed_loop_spectral_radius(self):

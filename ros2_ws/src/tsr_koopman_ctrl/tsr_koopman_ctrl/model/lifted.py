@@ -210,14 +210,16 @@ class LiftedModel:
         return (self.psi_x(x) @ self.A[:self.n].T
                 + self.psi_u(x, u)[:, None] * self.B[:self.n].T)
 
-    def local_linear_model(self, x=None, eps=1e-6):
-        """(J, B_x): the state part of the lifted model's one-step map linearised at x (default:
-        the equilibrium) in the lifted input, x+ ~ J x + B_x u_hat; J = A_x dpsi_x/dx by
-        central differences."""
+    def lift_jacobian(self, x=None, eps=1e-6):
+        """dpsi_x/dx at x (default: the equilibrium), (lifted_dim, n), by central differences."""
         x = dynamics.equilibrium_state(self.n) if x is None else np.asarray(x, dtype=float)
         steps = eps * np.eye(self.n)
-        dpsi = (self.psi_x(x + steps) - self.psi_x(x - steps)).T / (2.0 * eps)
-        return self.A[:self.n] @ dpsi, self.B[:self.n]
+        return (self.psi_x(x + steps) - self.psi_x(x - steps)).T / (2.0 * eps)
+
+    def local_linear_model(self, x=None, eps=1e-6):
+        """(J, B_x): the state part of the lifted model's one-step map linearised at x (default:
+        the equilibrium) in the lifted input, x+ ~ J x + B_x u_hat; J = A_x dpsi_x/dx."""
+        return self.A[:self.n] @ self.lift_jacobian(x, eps), self.B[:self.n]
 
     def controllability_rank(self):
         return controllability_rank(self.A, self.B)
