@@ -186,15 +186,6 @@ def real_block_form(a_phi):
     return np.stack(columns, axis=1), np.array(real_values), np.array(pair_values)
 
 
-def numeric_anchor_jacobian(tensors, config, eps=1e-5):
-    """d lift(normalise(x)) / dx at x = 0 (K x n) of a model file's tensors, by central
-    differences in float64."""
-    from tsr_koopman_ctrl.model.lifted import LiftedModel
-    model = LiftedModel(tensors, config)
-    steps = eps * np.eye(config.state_dim)
-    return ((model.psi_x(steps) - model.psi_x(-steps)) / (2.0 * eps))[:, config.state_dim:].T
-
-
 def from_tensors(tensors, config, structure=None):
     """A BlockKoopman initialised from a model file's tensors (any A): A_phi's real eigenbasis
     becomes the observables' basis (the lifting's last layer, A_xphi and B_phi transformed), the
@@ -205,7 +196,10 @@ def from_tensors(tensors, config, structure=None):
     a = np.asarray(tensors['A'], dtype=float)
     b = np.array(tensors['B'], dtype=float)
     if structure.flat:
-        t = flat_basis(numeric_anchor_jacobian(tensors, config), config.lifted_dim)
+        from tsr_koopman_ctrl.model.lifted import LiftedModel
+        # The observables' Jacobian at the anchor (K x n), float64 central differences.
+        jacobian = LiftedModel(tensors, config).lift_jacobian(eps=1e-5)[n:]
+        t = flat_basis(jacobian, config.lifted_dim)
         a, b = np.linalg.solve(t, a @ t), np.linalg.solve(t, b)
     basis, real_values, pair_values = real_block_form(a[n:, n:])
     structure = dataclasses.replace(structure, real_modes=len(real_values))
