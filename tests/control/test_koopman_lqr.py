@@ -63,10 +63,15 @@ def test_the_dense_default_model_does_not_deploy(x0):
     assert len(states) < 2001 or settle_index(states) is None
 
 
+def preset_settings(name):
+    """The law's settings in a preset file (config/<name>.yaml)."""
+    return {k: tuple(v) if isinstance(v, list) else v
+            for k, v in preset(name)['koopman_lqr'].items()}
+
+
 def cross_tuned():
     """The cross-tuned preset of the law (config/tuned_cross.yaml): on koopman_block_fast."""
-    return {k: tuple(v) if isinstance(v, list) else v
-            for k, v in preset('tuned_cross')['koopman_lqr'].items()}
+    return preset_settings('tuned_cross')
 
 
 def test_koopman_block_fast_observables_decay_within_0_95_per_step():
@@ -79,11 +84,16 @@ def test_koopman_block_fast_observables_decay_within_0_95_per_step():
     assert slow.size == 4 and all(np.min(np.abs(local - v)) < 1e-4 for v in slow)
 
 
+@pytest.mark.parametrize('name, bound', [('tuned_cross', 1.35), ('tuned_ratio', 1.4)])
 @pytest.mark.parametrize('x0', COMPARISON_STARTS + HELD_OUT_STARTS)
-def test_on_koopman_block_fast_the_cross_tuned_law_settles_within_1_35x_the_frontier(x0):
-    """Issue 14's bound for the paper's law is 1.6x; measured 1.25..1.32x (2026-12-01)."""
-    figures = closed_loop_figures(make_controller('koopman_lqr', **cross_tuned()), x0, 1500)
-    assert figures['frontier_ratio'] is not None and figures['frontier_ratio'] < 1.35, figures
+def test_on_koopman_block_fast_the_tuned_presets_settle_near_the_frontier(x0, name, bound):
+    """Issue 14's bound for the paper's law is 1.6x. Both presets plan on koopman_block_fast;
+    measured 1.25..1.32x cross-tuned, 1.27..1.36x ratio-tuned (diagonal Q; on koopman_block
+    that search reached 1.36..1.77x), 2026-12-01."""
+    settings = preset_settings(name)
+    assert settings['model'] == 'koopman_block_fast'
+    figures = closed_loop_figures(make_controller('koopman_lqr', **settings), x0, 1500)
+    assert figures['frontier_ratio'] is not None and figures['frontier_ratio'] < bound, figures
     assert figures['swing'] < 0.8
 
 

@@ -78,7 +78,7 @@ def test_the_ratio_tuned_preset_holds_each_law_s_tuning_result():
     # Every law but koopman_nmpc, tuned nowhere (~0.15 s a step).
     assert set(ratio_tuned) == set(CONTROLLERS) - {'koopman_nmpc'}
     # The settings each study held fixed, as its name spells them.
-    fixed_in_study = {'koopman_lqr': '_state-weight-state',
+    fixed_in_study = {'koopman_lqr': '_state-weight-state_model-koopman-block-fast',
                       'koopman_mpc': '_model-koopman-block_horizon-30'}
     for law, values in ratio_tuned.items():
         fixed = fixed_in_study.get(law, '')
