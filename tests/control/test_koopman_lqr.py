@@ -64,19 +64,14 @@ def test_the_dense_default_model_does_not_deploy(x0):
 
 
 def preset_settings(name):
-    """The law's settings in a preset file (config/<name>.yaml)."""
-    return {k: tuple(v) if isinstance(v, list) else v
-            for k, v in preset(name)['koopman_lqr'].items()}
-
-
-def cross_tuned():
-    """The cross-tuned preset of the law (config/tuned_cross.yaml): on koopman_block_fast."""
-    return preset_settings('tuned_cross')
+    """The law's settings in a preset file (config/<name>.yaml), as `compare --presets` takes
+    them."""
+    return preset(name)['koopman_lqr']
 
 
 def test_koopman_block_fast_observables_decay_within_0_95_per_step():
     """Every |eig A| beyond 0.95 is one of the state block's (the model's own linearisation)."""
-    law = KoopmanLqr(**cross_tuned())
+    law = KoopmanLqr(**preset_settings('tuned_cross'))
     assert law.settings.model == 'koopman_block_fast'
     values = np.linalg.eigvals(law.model.A)
     local = np.linalg.eigvals(law.model.local_linear_model()[0])
@@ -100,7 +95,7 @@ def test_on_koopman_block_fast_the_tuned_presets_settle_near_the_frontier(x0, na
 def test_the_observable_feedforward_is_what_makes_it_fast():
     """The same law with K_phi = 0 (the LQR of the model's state block alone, the same gain
     near the target) settles ~1 tau later from the paper's start (4.69 against 5.64 tau)."""
-    controller = make_controller('koopman_lqr', **cross_tuned())
+    controller = make_controller('koopman_lqr', **preset_settings('tuned_cross'))
     with_lift = closed_loop_figures(controller, PAPER_START, 1500)['settle_tau']
     law = controller.law
     state_gain, observable_gain = law.observable_feedforward_split()

@@ -35,6 +35,7 @@ import torch
 from torch import nn
 
 from tsr_koopman_ctrl.learning.deep_koopman import DeepKoopman
+from tsr_koopman_ctrl.model.lifted import LiftedModel
 
 #: Parameters that exist only in training; the model file stores the A they build.
 STRUCTURE_PARAMETERS = ('top', 'real_raw', 'pair_raw', 'pair_angle')
@@ -196,7 +197,6 @@ def from_tensors(tensors, config, structure=None):
     a = np.asarray(tensors['A'], dtype=float)
     b = np.array(tensors['B'], dtype=float)
     if structure.flat:
-        from tsr_koopman_ctrl.model.lifted import LiftedModel
         # The observables' Jacobian at the anchor (K x n), float64 central differences.
         jacobian = LiftedModel(tensors, config).lift_jacobian(eps=1e-5)[n:]
         t = flat_basis(jacobian, config.lifted_dim)
