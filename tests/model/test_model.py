@@ -1,5 +1,7 @@
 """The model file and the lifted model in numpy: inversion, damage, the shipped models."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -83,8 +85,6 @@ def test_koopman_retrieval_predicts_the_reeling_in_that_koopman_default_never_sa
 def test_a_model_anchored_at_another_tension_holds_its_equilibrium_there(tiny_model):
     """The torch model and the controller's numpy model agree on an anchor other than 3: the
     lifted equilibrium drifts nowhere at (x = 0, u = anchor) in both."""
-    import dataclasses
-
     import torch
     from tsr_koopman_ctrl.learning.deep_koopman import DeepKoopman
     from tsr_koopman_ctrl.model.lifted import LiftedModel
@@ -125,6 +125,26 @@ def test_a_relifted_prediction_is_the_one_step_map_iterated(tiny_model):
     linear = model.predict(x0, u)
     np.testing.assert_allclose(linear[:, 1], got[:, 1], rtol=1e-12)
     assert not np.allclose(linear[:, 2:], got[:, 2:])
+
+
+@pytest.mark.parametrize('activation', ['tanh', 'elu'])
+def test_the_analytic_step_jacobians_match_central_differences(tiny_model, activation):
+    """step_jacobians (forward mode through the networks) against central differences of
+    `step` itself, for either activation (the tiny model's weights read as either)."""
+    tensors, config, _ = model_file.load(tiny_model[0])
+    model = lifted.LiftedModel(tensors, dataclasses.replace(config, activation=activation))
+    rng = np.random.default_rng(5)
+    x, u = rng.normal(scale=[0.3, 0.3, 0.3, 0.5], size=(6, 4)), rng.uniform(0.0, 5.0, 6)
+    following, d_state, d_tension = model.step_jacobians(x, u)
+    np.testing.assert_allclose(following, model.step(x, u), rtol=1e-12, atol=1e-14)
+    eps = 1e-6
+    by_state = np.stack([(model.step(x + eps * e, u) - model.step(x - eps * e, u)) / (2 * eps)
+                         for e in np.eye(4)], axis=2)
+    by_tension = (model.step(x, u + eps) - model.step(x, u - eps)) / (2 * eps)
+    np.testing.assert_allclose(d_state, by_state, atol=1e-8)
+    np.testing.assert_allclose(d_tension, by_tension, atol=1e-8)
+    assert np.abs(d_state - np.eye(4)).max() > 1e-3     # not the identity the map is close to
+    assert np.abs(d_tension).max() > 1e-3
 
 
 def test_relifting_keeps_the_shipped_model_accurate_over_a_whole_deployment():

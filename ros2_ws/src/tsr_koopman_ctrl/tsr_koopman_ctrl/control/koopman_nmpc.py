@@ -11,8 +11,9 @@ instead of an NLP.
 Per step: the previous plan shifted by h and flown on the map from the measured state with
 the LQR gain on the deviation from the path it predicted (`shifted_plan`; the first step: the
 linearised LQR law flown on the map, refined by COLD_ITERATIONS QP steps);
-each interval's sensitivities to its start state and tension by finite differences, all
-intervals in one batched network evaluation; then the QP in the plan's change du (condensed:
+each interval's sensitivities to its start state and tension, exact (the networks
+differentiated in forward mode, the one-step Jacobians chained over the interval, all intervals
+in one batch); then the QP in the plan's change du (condensed:
 the node states are affine in du):
 
     min  sum_j d_j (q . t_j + r (u_j - 3)^2) + y_N' P y_N + 1e4 sum_j s_j
@@ -23,7 +24,9 @@ with y = [theta, theta', ln l, l'] linearised at the nodes (the physics NMPC's 1
 slacks t, exact instead of smoothed), the physics NMPC's margin for theta between nodes and P
 the continuous LQR cost-to-go at the target. The plan moves by du (halved until the new
 plan's rollout keeps the tether longer than LENGTH_FLOOR) and its first tension is flown.
-Solved by quadprog (dense Goldfarb-Idnani): DAQP cycles on this degenerate, LP-like QP (it
+Solved by Clarabel (interior point on the sparse problem; `qp_solver: quadprog`, dense
+Goldfarb-Idnani, solves it exactly at 3.9x the time, bench/bench_qp.py, and backs Clarabel up
+where it reports no optimum at full accuracy): DAQP cycles on this degenerate, LP-like QP (it
 failed on half the steps of a deployment from the paper's start, 2026-11-30), quadprog on
 none. A failed solve keeps the shifted plan and counts a fallback. The default model is
 koopman_retrieval (MODEL, below).
@@ -42,9 +45,8 @@ from tsr_koopman_ctrl.control.physics_nmpc import (
     PhysicsNmpcSettings as Nmpc, prediction_grid, shift_plan, THETA_MARGIN)
 from tsr_koopman_ctrl.control.settings import LawSettings, setting
 
-#: Finite-difference step of the sensitivities, the QP's regularisation of its variables (a
-#: strictly convex QP for quadprog) and the weight of the swing slacks: fixed by the first runs.
-DIFFERENCE_STEP = 1e-5
+#: The QP's regularisation of its variables (a strictly convex QP) and the weight of the swing
+#: slacks: fixed by the first runs.
 REGULARISATION = 1e-2
 SLACK_WEIGHT = 1e4
 
@@ -52,6 +54,9 @@ SLACK_WEIGHT = 1e4
 #: leaves the model's domain before the step is refused.
 COLD_ITERATIONS = 5
 BACKTRACKS = 4
+#: Clarabel's gap and feasibility tolerances (its default 1e-8 moved a planned tension by up to
+#: 7e-4 against quadprog's exact active-set solution on 64 QPs of a deployment; 1e-10, 2e-5).
+CLARABEL_TOLERANCE = 1e-10
 #: The plans keep the predicted tether this long at least (half the paper's initial length):
 #: the learned map is not trusted on a tether about to be reeled in completely.
 LENGTH_FLOOR = 0.005
@@ -81,6 +86,10 @@ class KoopmanNmpcSettings(LawSettings):
                               "path ('feedback'), or merely shifted ('shift'; under a 0.4 swing "
                               'bound it held the bound from one start more, README)',
                               choices=('feedback', 'shift'))
+    qp_solver: str = setting('clarabel', "QP solver: 'clarabel' (interior point, sparse: 3.9x "
+                             'faster here; quadprog where it reports no full-accuracy optimum) '
+                             "or 'quadprog' (dense active set, exact; the law's solver until "
+                             '2026-12-01)', choices=('clarabel', 'quadprog'))
     trust: float = setting(2.0, 'largest change of a planned tension per step (the QP trusts '
                            'the linearisation that far)', low=1e-3, high=10.0)
 
@@ -142,21 +151,19 @@ class KoopmanNmpc(Law):
         return self.fly(x, lambda j, state: plan[j])[1]
 
     def sensitivities(self, nodes, plan):
-        """(A_j, b_j): d x_{j+1} / d x_j (N, n, n) and / d u_j (N, n), by forward differences;
-        every interval and direction in one batch, stepped up to the longest interval."""
-        n_nodes, n = len(plan), self.model.n
-        batch = np.repeat(nodes[:-1], n + 2, axis=0)
-        tensions = np.repeat(plan, n + 2)
-        for k in range(n):
-            batch[k + 1::n + 2, k] += DIFFERENCE_STEP
-        tensions[n + 1::n + 2] += DIFFERENCE_STEP
-        counts = np.repeat(self.counts, n + 2)
+        """(A_j, b_j): d x_{j+1} / d x_j (N, n, n) and / d u_j (N, n), exact: each interval's
+        one-step Jacobians (`LiftedModel.step_jacobians`, forward mode through the networks)
+        chained over its steps, all intervals in one batch, stepped up to the longest."""
+        n = self.model.n
+        states = np.array(nodes[:-1], dtype=float)
+        a = np.broadcast_to(np.eye(n), (len(plan), n, n)).copy()
+        b = np.zeros((len(plan), n))
         for k in range(int(self.counts.max())):
-            active = counts > k
-            batch[active] = self.model.step(batch[active], tensions[active])
-        ends = batch.reshape(n_nodes, n + 2, n)
-        a = (ends[:, 1:n + 1] - ends[:, :1]).transpose(0, 2, 1) / DIFFERENCE_STEP
-        b = (ends[:, n + 1] - ends[:, 0]) / DIFFERENCE_STEP
+            active = self.counts > k
+            states[active], d_state, d_tension = self.model.step_jacobians(
+                states[active], plan[active])
+            a[active] = d_state @ a[active]
+            b[active] = np.einsum('nij,nj->ni', d_state, b[active]) + d_tension
         return a, b
 
     def node_gains(self, nodes, plan):
@@ -236,8 +243,14 @@ class KoopmanNmpc(Law):
         return None
 
     def solve(self, nodes, plan):
-        """The QP of the module docstring: du, or None if quadprog fails."""
-        import quadprog
+        """The QP of the module docstring: du, or None if the solver fails."""
+        solve = solve_clarabel if self.settings.qp_solver == 'clarabel' else solve_quadprog
+        solution = solve(*self.qp_problem(nodes, plan))
+        return None if solution is None else solution[:len(plan)]
+
+    def qp_problem(self, nodes, plan):
+        """(hessian, linear, rows, bounds) of the QP in [du, t, s]: min 1/2 v' H v + linear' v
+        subject to rows v >= bounds."""
         s, n_nodes = self.settings, len(plan)
         gains = self.node_gains(nodes, plan)
         states = nodes[1:]
@@ -272,8 +285,31 @@ class KoopmanNmpc(Law):
                        -states[:, dynamics.THETA] - (s.theta_max - THETA_MARGIN),
                        np.maximum(-plan, -s.trust), -np.minimum(self.u_max - plan, s.trust),
                        np.zeros(n_nodes)]
-        try:
-            solution = quadprog.solve_qp(hessian, -linear, rows.T, bounds, 0)[0]
-        except ValueError:    # quadprog: constraints inconsistent or matrix not positive definite
-            return None
-        return solution[:n_nodes]
+        return hessian, linear, rows, bounds
+
+
+def solve_quadprog(hessian, linear, rows, bounds):
+    """argmin 1/2 v' H v + linear' v subject to rows v >= bounds, or None."""
+    import quadprog
+    try:
+        return quadprog.solve_qp(hessian, -linear, rows.T, bounds, 0)[0]
+    except ValueError:    # quadprog: constraints inconsistent or matrix not positive definite
+        return None
+
+
+def solve_clarabel(hessian, linear, rows, bounds):
+    """The same QP by Clarabel (interior point, sparse), in its form -rows v + s = -bounds with
+    s >= 0; where it reports no optimum at full accuracy (one QP of 400 from (0, 0, -0.95, 1.0),
+    'AlmostSolved'), quadprog's exact solution; None if that fails too."""
+    import clarabel
+    from scipy import sparse
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = CLARABEL_TOLERANCE
+    solver = clarabel.DefaultSolver(
+        sparse.triu(hessian, format='csc'), linear, sparse.csc_matrix(-rows), -bounds,
+        [clarabel.NonnegativeConeT(len(bounds))], settings)
+    solution = solver.solve()
+    if str(solution.status) != 'Solved':
+        return solve_quadprog(hessian, linear, rows, bounds)
+    return np.asarray(solution.x)

@@ -44,6 +44,12 @@ class MonotoneMap:
         bumps = self.amplitude * np.tanh(self.steepness * s + self.shift)
         return self.slope * s[..., 0] + self.offset + bumps.sum(axis=-1)
 
+    def derivative(self, u):
+        """d psi_uu / du on an array (`slope_at` for a scalar)."""
+        s = (np.asarray(u, dtype=float)[..., None] - self.mid) / self.half
+        sech2 = 1.0 - np.tanh(self.steepness * s + self.shift) ** 2
+        return (self.slope + (self.amplitude * self.steepness * sech2).sum(axis=-1)) / self.half
+
     def value_at(self, u):
         """psi_uu at a scalar u, on Python floats (equal to `__call__` to rounding): the inverse
         evaluates it a few times per control step, where numpy's per-call cost would dominate."""
@@ -101,6 +107,17 @@ class Mlp:
             v = self.activation(v @ weight + bias)
         weight, bias = self.layers[-1]
         return v @ weight + bias
+
+    def with_tangents(self, v, tangents):
+        """The output at v (N, inputs) and its directional derivatives along `tangents` (N, k,
+        inputs), (N, k, outputs): forward-mode differentiation, layer by layer."""
+        for weight, bias in self.layers[:-1]:
+            v = self.activation(v @ weight + bias)
+            # tanh' = 1 - tanh^2; elu' = 1 on the positive side, exp = elu + 1 on the other.
+            slope = 1.0 - v ** 2 if self.activation is np.tanh else np.minimum(v, 0.0) + 1.0
+            tangents = slope[:, None, :] * (tangents @ weight)
+        weight, bias = self.layers[-1]
+        return v @ weight + bias, tangents @ weight
 
 
 def elu(v):
@@ -209,6 +226,31 @@ class LiftedModel:
         x+ = C (A psi_x(x) + B psi_u(x, u))."""
         return (self.psi_x(x) @ self.A[:self.n].T
                 + self.psi_u(x, u)[:, None] * self.B[:self.n].T)
+
+    def step_jacobians(self, x, u):
+        """The one-step map on a batch and its derivatives, analytic (forward mode through the
+        networks): (x+ (N, n), d x+ / d x (N, n, n), d x+ / d u (N, n))."""
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        u = np.asarray(u, dtype=float)
+        n = self.n
+        # d ((x - mean) / std) / dx, one direction per state component.
+        directions = np.broadcast_to(np.diag(1.0 / self.std), (len(x), n, n))
+        normalised = (x - self.mean) / self.std
+        lifted, d_lifted = self.lift.with_tangents(normalised, directions)
+        raw, d_raw = self.input_gain.with_tangents(normalised, directions)
+        raw, d_raw = raw[:, 0], d_raw[:, :, 0]
+        gain = self.config.min_input_gain + softplus(raw)
+        d_gain = d_raw / (1.0 + np.exp(-raw))[:, None]      # softplus' = sigmoid
+        mapped = self.input_map(u)
+        a_x, b_x = self.A[:self.n], self.B[:self.n, 0]
+        a_state, a_lift = a_x[:, :n], a_x[:, n:]
+        following = (x @ a_state.T + lifted @ a_lift.T
+                     + (gain * mapped)[:, None] * b_x[None, :])
+        # d x+ / d x_k = A_state e_k + A_lift dPhi/dx_k + b (psi_uu(u) d psi_ux / dx_k).
+        d_state = (a_state[None] + (d_lifted @ a_lift.T).transpose(0, 2, 1)
+                   + b_x[None, :, None] * (mapped[:, None] * d_gain)[:, None, :])
+        d_tension = (gain * self.input_map.derivative(u))[:, None] * b_x[None, :]
+        return following, d_state, d_tension
 
     def lift_jacobian(self, x=None, eps=1e-6):
         """dpsi_x/dx at x (default: the equilibrium), (lifted_dim, n), by central differences."""
