@@ -111,13 +111,19 @@ class Mlp:
     def with_tangents(self, v, tangents):
         """The output at v (N, inputs) and its directional derivatives along `tangents` (N, k,
         inputs), (N, k, outputs): forward-mode differentiation, layer by layer."""
+        def times(tangents, weight):
+            # One 2-D product: numpy multiplies a stack of matrices one by one (3x slower at
+            # 39 x 4 tangents of width 128, 2026-12-01).
+            return (tangents.reshape(-1, weight.shape[0]) @ weight).reshape(
+                tangents.shape[:-1] + weight.shape[1:])
+
         for weight, bias in self.layers[:-1]:
             v = self.activation(v @ weight + bias)
             # tanh' = 1 - tanh^2; elu' = 1 on the positive side, exp = elu + 1 on the other.
             slope = 1.0 - v ** 2 if self.activation is np.tanh else np.minimum(v, 0.0) + 1.0
-            tangents = slope[:, None, :] * (tangents @ weight)
+            tangents = slope[:, None, :] * times(tangents, weight)
         weight, bias = self.layers[-1]
-        return v @ weight + bias, tangents @ weight
+        return v @ weight + bias, times(tangents, weight)
 
 
 def elu(v):
