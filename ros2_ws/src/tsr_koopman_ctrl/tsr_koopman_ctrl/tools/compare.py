@@ -43,8 +43,9 @@ def run(law, settings, start, steps):
 
 
 #: Laws whose defaults were not set by tuning (the NMPC's are hand-picked; it is tuned only for
-#: the 'tuned_ratio' preset; koopman_nmpc takes the NMPC's and is tuned nowhere: ~0.15 s a
-#: step): where a preset does not name them, their defaults appear once, as 'defaults'.
+#: the 'tuned_ratio' preset; koopman_nmpc takes the NMPC's: its ratio search, ~0.13 s a step,
+#: is under way in docs/tuning/koopman_nmpc): where a preset does not name them, their
+#: defaults appear once, as 'defaults'.
 NOT_TUNED = {'physics_nmpc', 'koopman_nmpc'}
 
 
