@@ -78,8 +78,10 @@ def test_a_repeated_state_gets_its_command_again_without_running_the_law_twice(r
 
     from tsr_koopman_ctrl.control import closed_loop, make_controller
     want_x, want_u = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE, 2)
+    # No state timeout within the test: on a loaded machine discovery once took longer than the
+    # default 5 s, and the safe tension (step 0 before any state) came first.
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
-               {'controller': 'linear_lqr'})
+               {'controller': 'linear_lqr', 'state_timeout': 3600.0})
     node = ros.node
     commands, statuses = [], []
     state_pub = node.create_publisher(TsrState, wire.STATE_TOPIC, ros_io.LOOP_QOS)
