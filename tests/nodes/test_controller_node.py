@@ -21,7 +21,8 @@ def watch_loop(ros):
     ros.node.create_subscription(SimStatus, wire.SIM_STATUS_TOPIC,
                                  lambda m: seen.__setitem__('status', m), ros_io.LATCHED_QOS)
     ros.node.create_subscription(TensionCommand, wire.TENSION_TOPIC,
-                                 lambda m: seen['commands'].append(m.tension), ros_io.LOOP_QOS)
+                                 lambda m: seen['commands'].append((m.step, m.tension)),
+                                 ros_io.LOOP_QOS)
     return seen
 
 
@@ -49,7 +50,38 @@ def test_killing_the_controller_trips_both_timeouts_and_a_restart_resumes(ros, s
     seen['commands'].clear()
     ros.spin_until(lambda: len(seen['commands']) >= 2, timeout=10.0,
                    what='safe commands after the states stopped')
-    assert seen['commands'][-1] == pytest.approx(SCALE.u_to_tension(SAFE_U))
+    assert seen['commands'][-1] == (wire.NO_STEP,
+                                    pytest.approx(SCALE.u_to_tension(SAFE_U)))
+
+
+def test_the_safe_tension_before_any_state_answers_no_step(ros, start_node):
+    """A controller started before its plant sends the safe tension with step NO_STEP, so it
+    cannot pass for the answer to state 0; the first state then gets the law's command."""
+    from tsr_msgs.msg import ControllerStatus, TensionCommand, TsrState
+    from tsr_sim import ros_io
+
+    from tsr_koopman_ctrl.control import closed_loop, make_controller
+    _, want_u = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE, 1)
+    start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
+               {'controller': 'linear_lqr', 'state_timeout': 0.2})
+    node = ros.node
+    commands, statuses = [], []
+    state_pub = node.create_publisher(TsrState, wire.STATE_TOPIC, ros_io.LOOP_QOS)
+    node.create_subscription(TensionCommand, wire.TENSION_TOPIC,
+                             lambda m: commands.append((m.step, m.tension)), ros_io.LOOP_QOS)
+    node.create_subscription(ControllerStatus, wire.CONTROLLER_STATUS_TOPIC,
+                             lambda m: statuses.append((m.step, m.status)), ros_io.LOOP_QOS)
+    ros.spin_until(lambda: len(commands) >= 2 and state_pub.get_subscription_count() > 0,
+                   timeout=30.0, what='safe tensions before any state')
+    safe = (wire.NO_STEP, pytest.approx(SCALE.u_to_tension(SAFE_U)))
+    assert all(command == safe for command in commands)
+    assert (wire.NO_STEP, ControllerStatus.SAFE_TENSION) in statuses
+    state_pub.publish(wire.state_to_msg(SCALE.state_to_si(dynamics.PAPER_INITIAL_STATE), 0,
+                                        node.get_clock().now().to_msg()))
+    ros.spin_until(lambda: any(step == 0 for step, _ in commands), what="state 0's command")
+    answers = [tension for step, tension in commands if step == 0]
+    assert len(answers) == 1
+    assert SCALE.tension_to_u(answers[0]) == pytest.approx(want_u[0], rel=0, abs=1e-12)
 
 
 @pytest.mark.parametrize('params, message', [
@@ -78,17 +110,19 @@ def test_a_repeated_state_gets_its_command_again_without_running_the_law_twice(r
 
     from tsr_koopman_ctrl.control import closed_loop, make_controller
     want_x, want_u = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE, 2)
-    # No state timeout within the test: on a loaded machine discovery once took longer than the
-    # default 5 s, and the safe tension (step 0 before any state) came first.
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
-               {'controller': 'linear_lqr', 'state_timeout': 3600.0})
+               {'controller': 'linear_lqr'})
     node = ros.node
     commands, statuses = [], []
     state_pub = node.create_publisher(TsrState, wire.STATE_TOPIC, ros_io.LOOP_QOS)
+    # Answers to states only: on a loaded machine discovery can outlast the 5-s state timeout,
+    # and the safe tension (step NO_STEP, answering no state) comes first.
     node.create_subscription(TensionCommand, wire.TENSION_TOPIC,
-                             lambda m: commands.append((m.step, m.tension)), ros_io.LOOP_QOS)
+                             lambda m: m.step != wire.NO_STEP
+                             and commands.append((m.step, m.tension)), ros_io.LOOP_QOS)
     node.create_subscription(ControllerStatus, wire.CONTROLLER_STATUS_TOPIC,
-                             lambda m: statuses.append(m.step), ros_io.LOOP_QOS)
+                             lambda m: m.step != wire.NO_STEP
+                             and statuses.append(m.step), ros_io.LOOP_QOS)
     ros.spin_until(lambda: state_pub.get_subscription_count() > 0
                    and node.count_publishers(wire.TENSION_TOPIC) > 0,
                    what='the controller to appear')

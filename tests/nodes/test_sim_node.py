@@ -74,6 +74,8 @@ def test_lockstep_trajectory_matches_the_dynamics_module(ros, start_node):
 
 
 def test_bad_commands_are_rejected_and_counted(ros, start_node):
+    """...and the controller's safe tension, which answers no state, is neither applied nor
+    counted as a rejection."""
     start_node('tsr_sim', 'sim_node', 'tsr_sim', SIM_PARAMS)
     driver = SimDriver(ros, answer=False)
     driver.wait_for_sim()
@@ -88,6 +90,12 @@ def test_bad_commands_are_rejected_and_counted(ros, start_node):
                                   s.rejected_over_limit, s.rejected_stale) == (2, 1, 1, 1)
     ros.spin_until(counted, what='rejections counted')
     assert driver.status.commands_accepted == 0 and driver.status.step == 0
+    # The safe tension, then one more bad command: its status shows what the first did.
+    driver.send(SCALE.u_to_tension(3.0), wire.NO_STEP)
+    driver.send(math.nan, 0)
+    ros.spin_until(lambda: driver.status.rejected_non_finite == 3, what='the third NaN')
+    assert (driver.status.rejected_stale, driver.status.commands_accepted,
+            driver.status.step) == (1, 0, 0)
     driver.states.clear()
     driver.send(1.0, 0)                      # a valid command still works afterwards
     ros.spin_until(lambda: 1 in driver.states, what='step 1')

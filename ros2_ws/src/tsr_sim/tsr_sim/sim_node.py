@@ -5,7 +5,8 @@ Modes:
             as fast as DDS allows. With no command for `republish_period` wall seconds, the
             current state is published again (a late controller still gets it) with a warning;
             the controller's answer to that repeat, a copy of the command already accepted,
-            is dropped without one.
+            is dropped without one, and so is a command that answers no state
+            (`wire.NO_STEP`: the controller's safe tension).
   timed     advance at `rate_hz` wall-clock steps per second (time scale = rate_hz * step /
             Omega sim seconds per wall second) holding the latest command; with no valid command
             for `command_timeout` wall seconds, apply `safe_tension` and count a timeout.
@@ -28,7 +29,7 @@ from tsr_sim import dynamics
 from tsr_sim.plant import config_from_parameters, Plant, PLANT_PARAMETERS, Status
 from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, LATCHED_QOS,
                             LOOP_PUBLISHER_QOS, run_node)
-from tsr_sim.wire import (CLOCK_TOPIC, RESET_SERVICE, RUN_INFO_TOPIC, run_info_msg,
+from tsr_sim.wire import (CLOCK_TOPIC, NO_STEP, RESET_SERVICE, RUN_INFO_TOPIC, run_info_msg,
                           scale_dict, SIM_STATUS_TOPIC, STATE_TOPIC, state_to_msg, TENSION_TOPIC)
 
 
@@ -122,6 +123,12 @@ class SimNode(Node):
         step = msg.step if self.mode == 'lockstep' else None
         if step is not None and (step, msg.tension) == self.last_accepted:
             return   # the answer to a republished state: this command was applied already
+        if step == NO_STEP:
+            # The controller's safe tension: it saw no state for a while (e.g. it started first).
+            # Lockstep waits for the answer to its state; the republished state will get one.
+            self.get_logger().info(f'lockstep: ignored the safe tension {msg.tension:.4g} N '
+                                   '(it answers no state)', throttle_duration_sec=5.0)
+            return
         rejection = self.plant.accept(msg.tension, step)
         if rejection is not None:
             self.get_logger().warning(

@@ -21,6 +21,13 @@ EXCITATION_TOPIC = 'tsr/excitation'
 CLOCK_TOPIC = '/clock'
 RESET_SERVICE = 'tsr/reset'
 
+#: TensionCommand.step of a command that answers no state: the controller's safe tension, sent
+#: when no state comes (the largest uint64, which no state's step reaches). A lockstep
+#: simulator ignores it and waits for the answer to its state; a timed one, or hardware,
+#: applies it. Not a constant of the message: that would change its definition, and the bag
+#: reader refuses bags recorded under another one.
+NO_STEP = 2**64 - 1
+
 #: The loop's topics and their types: what the recorder records by default (subscribed at start
 #: so nothing is missed) and what the bag reader expects.
 LOOP_TOPIC_TYPES = {
@@ -78,7 +85,7 @@ def state_to_msg(si_state, step, stamp):
 
 
 def tension_msg(tension, step, stamp):
-    """Tension [N] answering state `step` -> TensionCommand."""
+    """Tension [N] answering state `step` (NO_STEP: none) -> TensionCommand."""
     from tsr_msgs.msg import TensionCommand
     msg = TensionCommand()
     msg.header.stamp = stamp

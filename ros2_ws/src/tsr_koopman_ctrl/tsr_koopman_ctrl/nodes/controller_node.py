@@ -7,12 +7,14 @@ declaration; `ros2 param describe` shows descriptions and ranges). Every command
 [0, max_tension] (the law's own bound is the same number) and the clamps counted. A non-finite
 state gets no command. With no state for `state_timeout` wall seconds the node publishes
 `safe_tension` (default: the equilibrium tension, u = 3) every `state_timeout` seconds, until
-states return. A state repeated exactly (same step, same values: a lockstep simulator publishes
-the state again when its command is late, e.g. behind a slow first solve) gets the command it
-already got, resent, without running the law again: a second compute would advance the law's
-plan and observer twice for one step. Each state's outcome and the law's compute time go out on
-`tsr/controller_status` (recorded in the bag). A bad law, setting or model stops the node at
-start with one line (exit 2).
+states return. It answers no state, so its step is `tsr_sim.wire.NO_STEP`: a lockstep
+simulator ignores it, and a bag reader cannot take it for a step's command (stamped with the
+last step, the one sent before any state passed for step 0's answer). A state repeated exactly
+(same step, same values: a lockstep simulator publishes the state again when its command is
+late, e.g. behind a slow first solve) gets the command it already got, resent, without running
+the law again: a second compute would advance the law's plan and observer twice for one step.
+Each state's outcome and the law's compute time go out on `tsr/controller_status` (recorded in
+the bag). A bad law, setting or model stops the node at start with one line (exit 2).
 """
 
 from collections import deque
@@ -29,7 +31,7 @@ from tsr_msgs.msg import ControllerStatus, Excitation, RunInfo, TensionCommand, 
 from tsr_sim import dynamics
 from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_PUBLISHER_QOS, LOOP_QOS,
                             run_node)
-from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, RUN_INFO_TOPIC,
+from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, NO_STEP, RUN_INFO_TOPIC,
                           run_info_msg, scale_dict, STATE_TOPIC, state_from_msg, TENSION_TOPIC,
                           tension_msg)
 
@@ -91,7 +93,6 @@ class ControllerNode(Node):
         #: ((step, SI state bytes), command) of the last state answered: a repeat is resent.
         self.last_answer = None
         self.last_state_wall = time.monotonic()
-        self.last_step = 0
         self.compute_seconds = deque(maxlen=100_000)
         self.pub = self.create_publisher(TensionCommand, TENSION_TOPIC, LOOP_PUBLISHER_QOS)
         self.status_pub = self.create_publisher(ControllerStatus, CONTROLLER_STATUS_TOPIC,
@@ -116,7 +117,7 @@ class ControllerNode(Node):
             self.get_logger().info(f'waiting for {self.wait_for_subscribers} subscribers to '
                                    f'{TENSION_TOPIC}', throttle_duration_sec=5.0)
             return
-        self.last_state_wall, self.last_step = time.monotonic(), msg.step
+        self.last_state_wall = time.monotonic()
         si = state_from_msg(msg, dynamics.PLANAR_DIM)
         key = (msg.step, si.tobytes())
         if self.last_answer is not None and self.last_answer[0] == key:
@@ -196,9 +197,9 @@ class ControllerNode(Node):
         self.counts['state_timeouts'] += 1
         self.get_logger().warning(f'no state for {self.state_timeout:g} s: publishing the safe '
                                   f'tension {self.safe_tension:.4g} N', throttle_duration_sec=5.0)
-        self.pub.publish(tension_msg(self.safe_tension, self.last_step,
+        self.pub.publish(tension_msg(self.safe_tension, NO_STEP,
                                      self.get_clock().now().to_msg()))
-        self.publish_status(self.last_step, ControllerStatus.SAFE_TENSION,
+        self.publish_status(NO_STEP, ControllerStatus.SAFE_TENSION,
                             tension=self.safe_tension)
 
     def report(self):
