@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 from rosbags.typesys import get_types_from_msg, get_typestore, Stores
-from tsr_sim import dynamics
+from tsr_sim import dynamics, wire
 from tsr_sim.units import Scale
 import yaml
 
@@ -162,6 +162,24 @@ def test_republished_identical_states_are_fine(tmp_path):
     path = write_loop(tmp_path / 'b', x, u, after=[('/tsr/state', state_cdr(x[10], 10))])
     windows = recorded.read_windows(path, steps=30)
     assert len(windows.data) == 1 and windows.provenance['gaps']['republished_states'] == 1
+
+
+def test_the_controller_s_safe_tension_answers_no_step_and_changes_nothing(tmp_path):
+    """Safe tensions (step NO_STEP) pair with no state: the windows and the loop read back
+    are the commands that answered states, with no warning. Stamped with a state's step, as
+    the controller did before 2026-12-01, one is a second, different command for that step."""
+    x, u, _ = loop_data(40)
+    safe = dynamics.EQUILIBRIUM_TENSION
+    path = write_loop(tmp_path / 'b', x, u,
+                      after=[('/tsr/tension_cmd', tension_cdr(safe, wire.NO_STEP))] * 2)
+    windows = recorded.read_windows(path, steps=30, h=H, state_dim=4)
+    np.testing.assert_allclose(windows.data.u[0], u[:30], rtol=0, atol=1e-12)
+    assert windows.warnings == []
+    np.testing.assert_allclose(bag.read_loop(path).u, u, rtol=0, atol=1e-12)
+    stamped = write_loop(tmp_path / 'old', x, u,
+                         after=[('/tsr/tension_cmd', tension_cdr(safe, 39))])
+    assert any('1 steps answered by different commands' in warning
+               for warning in recorded.read_windows(stamped, steps=30).warnings)
 
 
 def test_gaps_are_skipped_and_counted(tmp_path):
