@@ -117,15 +117,19 @@ def test_a_repeated_state_gets_its_command_again_without_running_the_law_twice(r
     state_pub = node.create_publisher(TsrState, wire.STATE_TOPIC, ros_io.LOOP_QOS)
     # Answers to states only: on a loaded machine discovery can outlast the 5-s state timeout,
     # and the safe tension (step NO_STEP, answering no state) comes first.
-    node.create_subscription(TensionCommand, wire.TENSION_TOPIC,
-                             lambda m: m.step != wire.NO_STEP
-                             and commands.append((m.step, m.tension)), ros_io.LOOP_QOS)
-    node.create_subscription(ControllerStatus, wire.CONTROLLER_STATUS_TOPIC,
-                             lambda m: m.step != wire.NO_STEP
-                             and statuses.append(m.step), ros_io.LOOP_QOS)
+    command_sub = node.create_subscription(
+        TensionCommand, wire.TENSION_TOPIC,
+        lambda m: m.step != wire.NO_STEP and commands.append((m.step, m.tension)),
+        ros_io.LOOP_QOS)
+    status_sub = node.create_subscription(
+        ControllerStatus, wire.CONTROLLER_STATUS_TOPIC,
+        lambda m: m.step != wire.NO_STEP and statuses.append(m.step), ros_io.LOOP_QOS)
+    # Matched on this side, not merely in the graph: a command published before this node's
+    # subscription matched was lost (1 timeout in 352 tests from a clean clone, 2026-12-01).
     ros.spin_until(lambda: state_pub.get_subscription_count() > 0
-                   and node.count_publishers(wire.TENSION_TOPIC) > 0,
-                   what='the controller to appear')
+                   and command_sub.get_publisher_count() > 0
+                   and status_sub.get_publisher_count() > 0,
+                   timeout=30.0, what='the controller to appear')
 
     def send(step, expected_commands):
         state_pub.publish(wire.state_to_msg(SCALE.state_to_si(want_x[step]), step,
