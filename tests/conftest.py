@@ -109,9 +109,10 @@ class RosClient:
                 raise TimeoutError(f'timed out after {timeout} s waiting for {what}')
             self.executor.spin_once(timeout_sec=0.05)
 
-    def spin_for(self, seconds):
+    def spin_for(self, seconds, until=None):
+        """Spin for `seconds`, or less if `until()` becomes true."""
         deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not (until and until()):
             self.executor.spin_once(timeout_sec=0.05)
 
     def close(self):

@@ -26,6 +26,21 @@ def watch_loop(ros):
     return seen
 
 
+def publish_until_answered(ros, state_pub, state_msg, commands, interval=2.0, timeout=10.0):
+    """Publish a state again every `interval` s until a command answers its step, as a
+    lockstep simulator does: the controller's subscription can match a moment after this
+    side's publisher has, and a state published in between is lost (volatile QoS)."""
+    import time
+    deadline = time.monotonic() + timeout
+    while not any(step == state_msg.step for step, _ in commands):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f'timed out after {timeout} s waiting for the answer to '
+                               f'state {state_msg.step}')
+        state_pub.publish(state_msg)
+        ros.spin_for(interval, until=lambda: any(step == state_msg.step
+                                                 for step, _ in commands))
+
+
 def test_killing_the_controller_trips_both_timeouts_and_a_restart_resumes(ros, start_node):
     controller_params = {'controller': 'linear_lqr', 'state_timeout': 0.5}
     sim = start_node('tsr_sim', 'sim_node', 'tsr_sim',
@@ -76,12 +91,12 @@ def test_the_safe_tension_before_any_state_answers_no_step(ros, start_node):
     safe = (wire.NO_STEP, pytest.approx(SCALE.u_to_tension(SAFE_U)))
     assert all(command == safe for command in commands)
     assert (wire.NO_STEP, ControllerStatus.SAFE_TENSION) in statuses
-    state_pub.publish(wire.state_to_msg(SCALE.state_to_si(dynamics.PAPER_INITIAL_STATE), 0,
-                                        node.get_clock().now().to_msg()))
-    ros.spin_until(lambda: any(step == 0 for step, _ in commands), what="state 0's command")
-    answers = [tension for step, tension in commands if step == 0]
-    assert len(answers) == 1
-    assert SCALE.tension_to_u(answers[0]) == pytest.approx(want_u[0], rel=0, abs=1e-12)
+    state = wire.state_to_msg(SCALE.state_to_si(dynamics.PAPER_INITIAL_STATE), 0,
+                              node.get_clock().now().to_msg())
+    publish_until_answered(ros, state_pub, state, commands)
+    # Every answer to state 0 (one per delivery of it) is the law's, none the safe tension.
+    answers = [SCALE.tension_to_u(tension) for step, tension in commands if step == 0]
+    np.testing.assert_allclose(answers, want_u[0], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize('params, message', [
@@ -131,18 +146,18 @@ def test_a_repeated_state_gets_its_command_again_without_running_the_law_twice(r
                    and status_sub.get_publisher_count() > 0,
                    timeout=30.0, what='the controller to appear')
 
-    def send(step, expected_commands):
-        state_pub.publish(wire.state_to_msg(SCALE.state_to_si(want_x[step]), step,
-                                            node.get_clock().now().to_msg()))
-        ros.spin_until(lambda: len(commands) >= expected_commands,
-                       what=f'command {expected_commands}')
+    def state(step):
+        return wire.state_to_msg(SCALE.state_to_si(want_x[step]), step,
+                                 node.get_clock().now().to_msg())
 
-    send(0, 1)
-    send(0, 2)       # the repeat
-    send(1, 3)
+    publish_until_answered(ros, state_pub, state(0), commands)
+    answered = len(commands)
+    state_pub.publish(state(0))      # the repeat
+    ros.spin_until(lambda: len(commands) > answered, what='the answer to the repeated state')
+    publish_until_answered(ros, state_pub, state(1), commands)
     ros.spin_until(lambda: len(statuses) >= 2, what='the statuses')
-    assert [step for step, _ in commands] == [0, 0, 1]
-    assert commands[1][1] == commands[0][1]
+    steps = [step for step, _ in commands]
+    assert steps.count(0) >= 2 and steps[-1] == 1 and steps == sorted(steps)
     np.testing.assert_allclose([SCALE.tension_to_u(t) for _, t in commands],
-                               [want_u[0], want_u[0], want_u[1]], rtol=0, atol=1e-12)
+                               [want_u[step] for step in steps], rtol=0, atol=1e-12)
     assert statuses == [0, 1]    # one compute (and one status) per step
