@@ -78,3 +78,24 @@ def test_nothing_refers_to_files_outside_the_repository():
                  and not (ROOT / name).is_symlink()
                  and outside in (ROOT / name).read_text(errors='ignore')]
     assert offenders == []
+
+
+def test_lookups_by_name_without_a_sourced_workspace_say_so_in_one_line(monkeypatch):
+    """Presets, plant variants and shipped models are found by name through the ament index;
+    with AMENT_PREFIX_PATH unset (a bare Python session) each says what is missing, not
+    ament_index's OSError."""
+    from tsr_koopman_ctrl.control.registry import preset
+    from tsr_koopman_ctrl.model.lifted import LiftedModel
+    from tsr_koopman_ctrl.model.model_file import ModelFileError
+    from tsr_sim.plant import plant_file
+    monkeypatch.delenv('AMENT_PREFIX_PATH', raising=False)
+    sourced = 'is the workspace sourced?'
+    with pytest.raises(ValueError, match=f"no settings preset 'tuned_ratio'.*{sourced}"):
+        preset('tuned_ratio')
+    with pytest.raises(ValueError, match=f"no plant variant 'nominal'.*{sourced}"):
+        plant_file('nominal')
+    with pytest.raises(ModelFileError, match=f'koopman_default: no such model.*{sourced}'):
+        LiftedModel.load('koopman_default')
+    # By path they need no workspace.
+    config = SRC / 'tsr_koopman_ctrl' / 'config'
+    assert preset(str(config / 'tuned_ratio.yaml'))['koopman_mpc']['horizon'] == 30

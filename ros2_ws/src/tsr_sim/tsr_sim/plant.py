@@ -235,7 +235,7 @@ def plant_file(name):
         if os.path.isfile(candidate):
             return candidate
         tried.append(candidate)
-    except (ImportError, LookupError):
+    except (ImportError, LookupError, OSError):     # OSError: AMENT_PREFIX_PATH unset
         tried.append('share/tsr_sim/config/plants (package not found: is the workspace sourced?)')
     raise ValueError(f'no plant variant {name!r} (tried {", ".join(tried)})')
 

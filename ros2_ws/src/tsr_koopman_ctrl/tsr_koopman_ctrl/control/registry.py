@@ -40,9 +40,14 @@ def preset(name):
     import yaml
     path = name
     if not os.path.isfile(path):
-        from ament_index_python.packages import get_package_share_directory
-        path = os.path.join(get_package_share_directory('tsr_koopman_ctrl'), 'config',
-                            f'{name}.yaml')
+        # By name, from the installed package: a path works without a sourced workspace.
+        try:
+            from ament_index_python.packages import get_package_share_directory
+            path = os.path.join(get_package_share_directory('tsr_koopman_ctrl'), 'config',
+                                f'{name}.yaml')
+        except (ImportError, LookupError, OSError):     # OSError: AMENT_PREFIX_PATH unset
+            path = ('share/tsr_koopman_ctrl/config (package not found: is the workspace '
+                    'sourced?)')
         if not os.path.isfile(path):
             raise ValueError(f'no settings preset {name!r} (tried {os.path.abspath(name)}, '
                              f'{path})')

@@ -21,7 +21,7 @@ def installed_models_dir():
         return None
     try:
         return os.path.join(get_package_share_directory(PACKAGE), 'models')
-    except PackageNotFoundError:
+    except (PackageNotFoundError, OSError):     # OSError: AMENT_PREFIX_PATH unset
         return None
 
 

@@ -132,8 +132,8 @@ def main(argv=None):
                    "'tuned_cross'); a file shows the laws it names")
     p.add_argument('--steps', type=int, default=2000)
     p.add_argument('--theta-max', type=float, metavar='RAD',
-                   help='a swing bound for the laws that take one (koopman_mpc: soft, '
-                   'physics_nmpc: exact penalty); the others are left out')
+                   help='a swing bound for the laws that take one (koopman_mpc: soft; '
+                   'physics_nmpc, koopman_nmpc: exact penalty); the others are left out')
     p.add_argument('--out', default=os.path.join('out', 'comparison'))
     args = p.parse_args(argv)
     try:

@@ -5,6 +5,7 @@
 The file is derived, never edited by hand: a test checks it equals this output.
 """
 
+import argparse
 import sys
 
 from tsr_koopman_ctrl.control import CONTROLLERS
@@ -46,6 +47,8 @@ def example_yaml(node_name='tsr_controller', default_law='koopman_mpc'):
 
 
 def main(argv=None):
+    description = __doc__.split('\n\n')[0].rstrip('.') + ', to stdout.'
+    argparse.ArgumentParser(description=description).parse_args(argv)
     sys.stdout.write(example_yaml())
     return 0
 

@@ -42,8 +42,9 @@ def parse_args(argv):
                         'koopman_* laws (default: their `model` setting, koopman_default)')
     parser.add_argument('--preset', help="a settings preset for the laws ('untuned': "
                         "config/untuned.yaml, the settings before tuning; 'tuned_ratio': "
-                        'config/tuned_ratio.yaml, tuned for the frontier ratio; or a parameter '
-                        'file); --set applies on top')
+                        'config/tuned_ratio.yaml, tuned for the frontier ratio; '
+                        "'tuned_cross': config/tuned_cross.yaml, with cross terms in Q; or a "
+                        'parameter file); --set applies on top')
     parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
                         help='a law setting (repeatable), e.g. koopman_mpc.horizon=8, the '
                         'observer (offset-free control, on by default): '
