@@ -52,6 +52,9 @@ def test_dataset_file_round_trip_and_errors(small_data, tmp_path):
         datasets.load(path)
     with pytest.raises(ValueError, match='no such dataset'):
         datasets.load(tmp_path / 'missing.npz')
+    path.write_text('not an archive')       # np.load alone would suggest allow_pickle
+    with pytest.raises(ValueError, match=r'd.npz: not a readable dataset file \(the .npz'):
+        datasets.load(path)
 
 
 def test_windows_from_a_recorded_loop_skip_gaps_and_missing_commands():

@@ -26,7 +26,8 @@ def test_monotone_input_map_inverts_everywhere(tiny_model):
 @pytest.mark.parametrize('damage, message', [
     ('truncate', 'corrupt or truncated'), ('delete_weights', 'weights.safetensors: missing'),
     ('bad_json', 'not valid JSON'), ('wrong_shape', 'A has shape'),
-    ('nan', 'A has non-finite'), ('no_dir', 'no such model directory')])
+    ('nan', 'A has non-finite'), ('no_dir', 'no such model directory'),
+    ('nan_period', 'h (the sample period in tau) must be > 0')])
 def test_bad_model_files_give_one_clear_line(tiny_model, tmp_path, damage, message):
     tensors, config, meta = model_file.load(tiny_model[0])
     target = tmp_path / 'm'
@@ -44,6 +45,12 @@ def test_bad_model_files_give_one_clear_line(tiny_model, tmp_path, damage, messa
         arrays = {k: np.array(v, dtype=np.float32) for k, v in tensors.items()}
         arrays['A'] = arrays['A'][:-1] if damage == 'wrong_shape' else arrays['A'] * np.nan
         save_file(arrays, str(weights))
+    elif damage == 'nan_period':
+        import json
+        meta_path = target / model_file.META_FILE
+        meta = json.loads(meta_path.read_text())
+        meta['config']['h'] = float('nan')
+        meta_path.write_text(json.dumps(meta))
     elif damage == 'no_dir':
         target = tmp_path / 'nothing'
     with pytest.raises(model_file.ModelFileError) as error:

@@ -99,6 +99,15 @@ def test_the_safe_tension_before_any_state_answers_no_step(ros, start_node):
     np.testing.assert_allclose(answers, want_u[0], rtol=0, atol=1e-12)
 
 
+def test_a_missing_params_file_fails_at_start_with_one_line(start_node, tmp_path):
+    proc = start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
+                      extra_args=('--params-file', str(tmp_path / 'missing.yaml')))
+    assert proc.wait(timeout=30) == 2
+    log = (tmp_path / 'tsr_controller.log').read_text()
+    assert "cannot start: failed to initialize rcl: Couldn't parse params file" in log
+    assert 'Traceback' not in log
+
+
 @pytest.mark.parametrize('params, message', [
     ({'controller': 'koopman_lqr', 'koopman_lqr': {'model': '/nonexistent/model'}},
      '/nonexistent/model: no such model directory'),

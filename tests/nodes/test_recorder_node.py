@@ -98,3 +98,16 @@ def test_a_matched_topic_that_stays_silent_is_logged_once(ros, start_node, tmp_p
     log = (tmp_path / 'tsr_recorder.log').read_text()
     assert log.count(f'no message on {silent} for 1 s although 1 publisher(s)') == 1, log
     assert f'no message on {TOPIC}' not in log
+
+
+@pytest.mark.parametrize('params, message', [
+    ({'types': ['counter']}, "cannot start: 'counter' is not a message type (pkg/msg/Type)"),
+    ({'types': ['std_msgs/msg/Nope']}, "cannot start: no message type 'std_msgs/msg/Nope'")])
+def test_a_bad_message_type_stops_the_recorder_before_any_bag_exists(start_node, tmp_path,
+                                                                     params, message):
+    bags = tmp_path / 'bags'
+    recorder = start_recorder(start_node, bags, **params)
+    assert recorder.wait(timeout=30) == 2
+    log = (tmp_path / 'tsr_recorder.log').read_text()
+    assert message in log and 'Traceback' not in log
+    assert not bags.exists()

@@ -94,12 +94,16 @@ def test_a_start_outside_the_domain_is_one_clear_line(tmp_path, domain_id, capsy
     assert 'outside the model domain' in capsys.readouterr().err
 
 
-def test_a_node_failing_at_start_is_reported_with_its_log(tmp_path, domain_id, capsys):
-    assert deploy.main(deploy_args(tmp_path, domain_id, '--model', str(tmp_path / 'nothing'),
+def test_a_node_failing_at_start_is_reported_with_its_log(tmp_path, domain_id, capfd):
+    # A plant file deploy reads but only the simulator checks (a bad model is refused before
+    # any node starts: tools/test_cli.py).
+    plant = tmp_path / 'plant.yaml'
+    plant.write_text('/**:\n  ros__parameters:\n    substeps: 0\n')
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--plant', str(plant),
                                    '--steps', '50')) == 1
-    err = capsys.readouterr().err
-    assert 'tsr_controller exited early' in err and 'exited with 2' in err
-    assert 'nothing: no such model directory' in err     # the last lines of its log
+    out, err = capfd.readouterr()
+    assert 'tsr_sim exited with 2 (its log is above)' in err
+    assert 'cannot start:' in out and 'Parameter substeps out of range' in out
 
 
 def test_excitation_and_run_info_are_recorded(tmp_path, domain_id):

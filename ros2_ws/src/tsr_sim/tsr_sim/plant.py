@@ -242,12 +242,5 @@ def plant_file(name):
 
 def plant_parameters(name):
     """The simulator parameters of a plant variant file (its ros__parameters)."""
-    import yaml
-    path = plant_file(name)
-    with open(path) as stream:
-        document = yaml.safe_load(stream) or {}
-    try:
-        (section,) = document.values()
-        return dict(section['ros__parameters'])
-    except (ValueError, KeyError, TypeError, AttributeError):
-        raise ValueError(f'{path}: not a parameter file with one node section')
+    from tsr_sim.parameter_file import node_parameters
+    return node_parameters(plant_file(name))

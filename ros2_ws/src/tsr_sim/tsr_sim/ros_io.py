@@ -82,14 +82,20 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     one clear line on stderr and exit code 2.
     """
     from rclpy.experimental import EventsExecutor
+    from rclpy.impl.implementation_singleton import rclpy_implementation
     from rclpy.signals import SignalHandlerOptions
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    RCLError = rclpy_implementation.RCLError
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except RCLError as err:     # e.g. --params-file that is missing or not YAML
+        print(f'cannot start: {str(err).splitlines()[0]}', file=sys.stderr, flush=True)
+        return 2
     stop = []
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda number, frame: stop.append(number))
     try:
         node = make_node()
-    except (ValueError, ParameterException) as err:
+    except (ValueError, ParameterException, OSError) as err:   # OSError: an output path
         print(f'cannot start: {err}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return 2

@@ -37,7 +37,7 @@ def preset(name):
     settings before tuning). The laws' defaults are the tuned settings."""
     import os
 
-    import yaml
+    from tsr_sim.parameter_file import node_parameters
     path = name
     if not os.path.isfile(path):
         # By name, from the installed package: a path works without a sourced workspace.
@@ -51,11 +51,10 @@ def preset(name):
         if not os.path.isfile(path):
             raise ValueError(f'no settings preset {name!r} (tried {os.path.abspath(name)}, '
                              f'{path})')
-    with open(path) as stream:
-        document = yaml.safe_load(stream) or {}
-    (section,) = document.values()
-    laws = {law: dict(values) for law, values in section['ros__parameters'].items()
+    laws = {law: values for law, values in node_parameters(path).items()
             if law in CONTROLLERS}
     for law, values in laws.items():
+        if not isinstance(values, dict):
+            raise ValueError(f'{path}: {law} is not a section of settings')
         law_class(law).Settings(**values)     # checked: one line if a value is out of range
     return laws

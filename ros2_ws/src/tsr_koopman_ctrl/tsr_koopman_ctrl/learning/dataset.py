@@ -12,6 +12,7 @@ and ``meta`` (a JSON string: format version, h, provenance). It loads with
 
 import dataclasses
 import json
+import os
 import zipfile
 
 import numpy as np
@@ -185,6 +186,9 @@ def save(dataset, path):
 
 def load(path):
     """Read a dataset file; a missing or malformed one raises ValueError naming the file."""
+    if os.path.isfile(path) and not zipfile.is_zipfile(path):
+        # np.load would try it as a pickle and answer with a hint about allow_pickle.
+        raise ValueError(f'{path}: not a readable dataset file (the .npz archive `save` writes)')
     try:
         with np.load(path, allow_pickle=False) as archive:
             meta = json.loads(str(archive['meta']))

@@ -91,6 +91,9 @@ class KoopmanConfig:
                 raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
         if self.activation not in ACTIVATIONS:
             raise ValueError(f'activation must be one of {ACTIVATIONS}, got {self.activation!r}')
+        if not 0.0 < self.h < float('inf'):      # NaN fails too
+            raise ValueError(f'h (the sample period in tau) must be > 0 and finite, '
+                             f'got {self.h}')
         if not 0.0 < self.gamma <= 1.0:
             raise ValueError(f'gamma must be in (0, 1], got {self.gamma}')
         if not self.tension_range[0] <= self.anchor_tension <= self.tension_range[1]:
@@ -163,6 +166,8 @@ def load(directory):
     if not directory.is_dir():
         raise ModelFileError(f'{directory}: no such model directory')
     meta = read_metadata(meta_path)
+    if not isinstance(meta.get('config'), dict):
+        raise ModelFileError(f'{meta_path}: no config object (the KoopmanConfig fields)')
     try:
         config = KoopmanConfig.from_dict(meta['config'])
     except (KeyError, TypeError, ValueError) as error:

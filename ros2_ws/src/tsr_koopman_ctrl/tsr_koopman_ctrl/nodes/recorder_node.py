@@ -26,9 +26,16 @@ DEFAULT_TYPES = list(LOOP_TOPIC_TYPES.values())
 
 
 def message_class(type_name):
-    """'pkg/msg/Type' -> the generated Python class."""
-    package, kind, name = type_name.split('/')
-    return getattr(importlib.import_module(f'{package}.{kind}'), name)
+    """'pkg/msg/Type' -> the generated Python class (ValueError if there is none)."""
+    parts = type_name.split('/')
+    if len(parts) != 3 or parts[1] != 'msg' or not all(parts):
+        raise ValueError(f'{type_name!r} is not a message type (pkg/msg/Type)')
+    package, kind, name = parts
+    try:
+        return getattr(importlib.import_module(f'{package}.{kind}'), name)
+    except (ImportError, AttributeError):
+        raise ValueError(f'no message type {type_name!r} (is its package installed and '
+                         'the workspace sourced?)') from None
 
 
 def offered_qos(endpoint):
@@ -50,6 +57,8 @@ class RecorderNode(Node):
         types = declare(self, 'types', DEFAULT_TYPES if defaults else [''],
                         'message type of each topic (pkg/msg/Type), subscribed at start so '
                         "nothing is missed; '' or a shorter list: discovered from publishers")
+        for type_name in filter(None, types):
+            message_class(type_name)      # a bad type stops the node before any bag exists
         directory = declare(self, 'output_dir', 'bags', 'directory the bag is created in')
         name = declare(self, 'bag_name', '', 'bag directory name (empty: tsr_<UTC time>)')
         name = name or datetime.datetime.now(datetime.timezone.utc).strftime('tsr_%Y%m%d_%H%M%S')

@@ -27,6 +27,7 @@ from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller, 
 from tsr_koopman_ctrl.control.registry import law_class, preset
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments, plot_ratios
+from tsr_koopman_ctrl.tools import cli
 from tsr_koopman_ctrl.tools.report import write_results
 
 
@@ -130,11 +131,11 @@ def main(argv=None):
                    help="settings presets: 'tuned' (the laws' defaults), or a parameter file "
                    "by path or by name under config/ ('untuned', 'tuned_ratio', "
                    "'tuned_cross'); a file shows the laws it names")
-    p.add_argument('--steps', type=int, default=2000)
-    p.add_argument('--theta-max', type=float, metavar='RAD',
+    p.add_argument('--steps', type=cli.STEPS, default=2000)
+    p.add_argument('--theta-max', type=cli.number(above=0), metavar='RAD',
                    help='a swing bound for the laws that take one (koopman_mpc: soft; '
                    'physics_nmpc, koopman_nmpc: exact penalty); the others are left out')
-    p.add_argument('--out', default=os.path.join('out', 'comparison'))
+    p.add_argument('--out', default=os.path.join('out', 'comparison'), type=cli.output_dir)
     args = p.parse_args(argv)
     try:
         rows, loops = compare(args.laws, args.presets, args.steps, args.theta_max)

@@ -31,6 +31,8 @@ from tsr_koopman_ctrl.control.registry import law_class, preset
 from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
+from tsr_koopman_ctrl.model import LiftedModel
+from tsr_koopman_ctrl.tools import cli
 from tsr_koopman_ctrl.tools.launcher import NodeProcess
 from tsr_koopman_ctrl.tools.report import write_report
 
@@ -54,7 +56,7 @@ def parse_args(argv):
                         help='plant variant: a name under tsr_sim/config/plants (actuator_weak, '
                         'actuator_strong, heavy_robot, out_of_plane, eccentric_orbit, '
                         'noisy_sensors) or a YAML file of simulator parameters')
-    parser.add_argument('--steps', type=int, default=2000,
+    parser.add_argument('--steps', type=cli.STEPS, default=2000,
                         help='simulation steps of h = 0.01 tau (paper: 2000)')
     parser.add_argument('--x0', type=float, nargs=4, default=dynamics.PAPER_INITIAL_STATE,
                         metavar=('THETA', 'THETA_RATE', 'L_MINUS_1', 'L_RATE'),
@@ -62,12 +64,14 @@ def parse_args(argv):
     parser.add_argument('--compare', action='store_true',
                         help='every controller from every comparison start, one table and a '
                         'plot per start (ignores --controller and --x0)')
-    parser.add_argument('--out', default='out', help='directory for plots, summary and logs')
-    parser.add_argument('--bags', default='bags', help='directory the bag is written in')
+    parser.add_argument('--out', default='out', type=cli.output_dir,
+                        help='directory for plots, summary and logs')
+    parser.add_argument('--bags', default='bags', type=cli.output_dir,
+                        help='directory the bag is written in')
     parser.add_argument('--namespace', default=None, help='ROS namespace of the three nodes')
-    parser.add_argument('--domain', type=int, default=None,
+    parser.add_argument('--domain', type=cli.DOMAIN_ID, default=None,
                         help='ROS_DOMAIN_ID (default: a random one in 120..219)')
-    parser.add_argument('--timeout', type=float, default=900.0,
+    parser.add_argument('--timeout', type=cli.number(above=0), default=900.0,
                         help='wall seconds before the run is abandoned')
     args = parser.parse_args(argv)
     try:
@@ -80,9 +84,32 @@ def parse_args(argv):
         parser.error(f'--x0 {list(args.x0)} is outside the model domain (finite, l - 1 > -1)')
     try:
         args.plant_parameters = plant_parameters(args.plant)
+        check_models(args)
     except ValueError as error:
         parser.error(str(error))
+    if args.namespace is not None:
+        from rclpy.exceptions import NameValidationException
+        from rclpy.validate_namespace import validate_namespace
+        if not args.namespace.startswith('/'):
+            args.namespace = '/' + args.namespace     # as `ros2 launch` pushes one: absolute
+        try:
+            validate_namespace(args.namespace)
+        except NameValidationException as error:
+            parser.error(f'--namespace {args.namespace!r}: {str(error).splitlines()[0]}')
     return args
+
+
+def check_models(args):
+    """Load the model of every law that will run and has one: a bad one is a usage error
+    here, not a controller that fails to start after the other nodes have."""
+    laws = sorted(CONTROLLERS) if args.compare else [args.controller]
+    if args.model is not None and not any(
+            'model' in law_class(law).Settings.__dataclass_fields__ for law in laws):
+        raise ValueError(f'--model: {args.controller} uses no model')
+    for law in laws:
+        settings = law_class(law).Settings
+        if 'model' in settings.__dataclass_fields__:
+            LiftedModel.load(args.law_settings.get(law, {}).get('model', settings().model))
 
 
 #: --set sections that are not laws: the observer (offset-free control) and the excitation.

@@ -19,6 +19,7 @@ import os
 import sys
 
 import numpy as np
+from tsr_sim.plant import plant_parameters
 
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, HELD_OUT_STARTS,
@@ -26,7 +27,7 @@ from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, HELD_OUT_STARTS,
 from tsr_koopman_ctrl.learning import multistep_errors
 from tsr_koopman_ctrl.learning.recorded import find_bags, read_bags, windows_dataset
 from tsr_koopman_ctrl.model import DEFAULT_MODEL, LiftedModel
-from tsr_koopman_ctrl.tools import deploy, retrain
+from tsr_koopman_ctrl.tools import cli, deploy, retrain
 from tsr_koopman_ctrl.tools.report import write_results
 
 EXCITATION = ['excitation.kind=prbs', 'excitation.amplitude=0.3', 'excitation.hold=20']
@@ -172,20 +173,31 @@ def plot_rounds(rounds, nominal, path, plant):
 def parser():
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--plant', required=True, help='plant variant (tsr_sim config/plants)')
-    p.add_argument('--rounds', type=int, default=2)
+    p.add_argument('--rounds', type=cli.integer(1), default=2)
     p.add_argument('--law', default='koopman_mpc', choices=['koopman_mpc', 'koopman_lqr'])
     p.add_argument('--model', default=DEFAULT_MODEL, help='the start model')
-    p.add_argument('--steps', type=int, default=2000)
-    p.add_argument('--epochs', type=int, default=10, help='fine-tuning epochs per round')
-    p.add_argument('--sampled-ratio', type=float, default=0.0,
+    p.add_argument('--steps', type=cli.STEPS, default=2000)
+    p.add_argument('--epochs', type=cli.integer(1), default=10,
+                   help='fine-tuning epochs per round')
+    p.add_argument('--sampled-ratio', type=cli.number(0), default=0.0,
                    help='sampled Table-1 trajectories per recorded window in each retraining')
-    p.add_argument('--out', default=os.path.join('out', 'loop'))
+    p.add_argument('--out', default=os.path.join('out', 'loop'), type=cli.output_dir)
     return p
 
 
 def main(argv=None):
-    args = parser().parse_args(argv)
+    p = parser()
+    args = p.parse_args(argv)
     args.workdir = os.path.join(args.out, args.plant)
+    # Checked before the first deployment, which takes minutes, creates anything.
+    try:
+        plant_parameters(args.plant)
+        LiftedModel.load(args.model)
+    except ValueError as error:
+        p.error(str(error))
+    if os.path.isdir(args.workdir) and os.listdir(args.workdir):
+        p.error(f'{args.workdir} holds an earlier loop (bags, models): give another --out or '
+                'remove it')
     try:
         result = run(args)
     except (RuntimeError, ValueError) as error:

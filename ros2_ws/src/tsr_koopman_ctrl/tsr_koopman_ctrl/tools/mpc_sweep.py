@@ -19,6 +19,7 @@ from tsr_koopman_ctrl.control import KoopmanMpc
 from tsr_koopman_ctrl.control.koopman_lqr import load_model
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS
 from tsr_koopman_ctrl.model import DEFAULT_MODEL
+from tsr_koopman_ctrl.tools import cli
 from tsr_koopman_ctrl.tools.report import write_results
 
 
@@ -50,9 +51,9 @@ def table(results):
 def parser():
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--models', nargs='+', default=[DEFAULT_MODEL])
-    p.add_argument('--horizons', nargs='+', type=int, default=[5])
-    p.add_argument('--steps', type=int, default=2000)
-    p.add_argument('--out', default=os.path.join('out', 'mpc_sweep'))
+    p.add_argument('--horizons', nargs='+', type=cli.integer(1), default=[5])
+    p.add_argument('--steps', type=cli.STEPS, default=2000)
+    p.add_argument('--out', default=os.path.join('out', 'mpc_sweep'), type=cli.output_dir)
     return p
 
 

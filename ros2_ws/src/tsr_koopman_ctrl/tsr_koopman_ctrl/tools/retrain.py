@@ -47,6 +47,7 @@ from tsr_koopman_ctrl.learning import distributed, recorded
 from tsr_koopman_ctrl.learning.deep_koopman import DeepKoopman
 from tsr_koopman_ctrl.learning.trainer import evaluate, save_model, Trainer
 from tsr_koopman_ctrl.model import model_file, shipped
+from tsr_koopman_ctrl.tools import cli
 
 FINE_TUNE_EPOCHS = 10
 #: Overlapping training windows: on the loop's few bags a window every 3 steps lowered the
@@ -82,7 +83,7 @@ def parser():
     p = _Quiet(prog='retrain', description=__doc__.split('\n\n')[0])
     p.add_argument('--bags', nargs='+', action='extend', required=True, metavar='BAG_OR_DIR',
                    help='bags to train on (a directory: every bag below it)')
-    p.add_argument('--out', required=True, help='model directory to write')
+    p.add_argument('--out', required=True, type=cli.output_dir, help='model directory to write')
     p.add_argument('--init', metavar='MODEL',
                    help='model to fine-tune (a directory or a shipped name)')
     p.add_argument('--from-scratch', action='store_true',
@@ -92,7 +93,7 @@ def parser():
                    'with fine-tuning only training settings')
     p.add_argument('--held-out', nargs='+', action='extend', default=[], metavar='BAG_OR_DIR',
                    help='bags never trained on, for the error before and after')
-    p.add_argument('--sampled-ratio', type=float, default=0.0, metavar='R',
+    p.add_argument('--sampled-ratio', type=cli.number(0), default=0.0, metavar='R',
                    help='sampled Table-1 trajectories per recorded window to mix in (0)')
     p.add_argument('--data-seed', type=int, default=0, help='seed of the sampled mix')
     p.add_argument('--test-trajectories', type=int, default=2000,
@@ -106,17 +107,18 @@ def parser():
                    help="equilibrium tension the model is anchored at: 'data' (the mean "
                    "command over the training bags' steps inside the 1%% zone), 'init' (the "
                    "init model's or config's), or a number")
-    p.add_argument('--epochs', type=int,
+    p.add_argument('--epochs', type=cli.integer(1),
                    help=f'epochs (fine-tuning: {FINE_TUNE_EPOCHS}; else the config\'s)')
-    p.add_argument('--learning-rate', type=float,
+    p.add_argument('--learning-rate', type=cli.number(above=0),
                    help='initial learning rate (fine-tuning: a tenth of the init\'s)')
     p.add_argument('--batch-size', type=int, help='global batch (split over the ranks)')
     p.add_argument('--seed', type=int, help='training seed')
     p.add_argument('--namespace', help='the loop to read in bags holding several')
     p.add_argument('--skip-bad', action='store_true',
                    help='skip bad bags with a warning instead of exit 2')
-    p.add_argument('--device', help='torch device (default: cuda if present, else cpu)')
-    p.add_argument('--threads', type=int, help='torch CPU threads (per rank)')
+    p.add_argument('--device', type=cli.torch_device,
+                   help='torch device (default: cuda if present, else cpu)')
+    p.add_argument('--threads', type=cli.integer(1), help='torch CPU threads (per rank)')
     p.add_argument('--quiet', action='store_true', help='no per-epoch lines or progress bars')
     return p
 
@@ -127,7 +129,10 @@ def _overrides(text):
     if not text:
         return {}
     try:
-        source = text if text.lstrip().startswith('{') else pathlib.Path(text).read_text()
+        # A file if there is one; else JSON text ('[1]' is then refused below, not a path).
+        source = pathlib.Path(text).read_text() if os.path.isfile(text) else text
+        if source is text and text.lstrip()[:1] not in '{[':
+            raise ValueError(f'{text}: neither a file nor a JSON object')
         values = json.loads(source)
     except (OSError, ValueError) as error:
         raise UsageError(f'--config-json: {error}')

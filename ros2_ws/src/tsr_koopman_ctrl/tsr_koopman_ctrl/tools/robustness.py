@@ -13,8 +13,9 @@ import argparse
 import os
 import sys
 
-from tsr_koopman_ctrl.control import closed_loop, make_controller
+from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
+from tsr_koopman_ctrl.tools import cli
 from tsr_koopman_ctrl.tools.report import write_results
 
 STARTS = COMPARISON_STARTS + HELD_OUT_STARTS[:2]
@@ -82,9 +83,10 @@ def markdown(rows):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    p.add_argument('--laws', nargs='+', default=['koopman_mpc', 'linear_lqr'])
-    p.add_argument('--steps', type=int, default=2000)
-    p.add_argument('--out', default=os.path.join('out', 'robustness'))
+    p.add_argument('--laws', nargs='+', default=['koopman_mpc', 'linear_lqr'],
+                   choices=sorted(CONTROLLERS))
+    p.add_argument('--steps', type=cli.STEPS, default=2000)
+    p.add_argument('--out', default=os.path.join('out', 'robustness'), type=cli.output_dir)
     args = p.parse_args(argv)
     rows = grid(args.laws, args.steps)
     text = markdown(rows)

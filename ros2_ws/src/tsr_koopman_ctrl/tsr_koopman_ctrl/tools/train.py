@@ -23,6 +23,7 @@ from tsr_sim import dynamics
 from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
 from tsr_koopman_ctrl.model import model_file, shipped
+from tsr_koopman_ctrl.tools import cli
 
 
 #: Extra sampled data beyond the paper's (not in it): the flag giving the count, the seed offset
@@ -87,7 +88,7 @@ def structure_from_args(args):
 
 def parser():
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    p.add_argument('--out', required=True, help='model directory to write')
+    p.add_argument('--out', required=True, type=cli.output_dir, help='model directory to write')
     p.add_argument('--data', action='append', default=[], help='dataset file (repeatable)')
     p.add_argument('--trajectories', type=int, default=40_000,
                    help='trajectories to sample with the paper settings (0: none)')
@@ -108,15 +109,16 @@ def parser():
                    help='make x = 0, u = 3 an exact fixed point of the lifted model (not in the '
                    'paper)')
     p.add_argument('--data-seed', type=int, default=0)
-    p.add_argument('--test-trajectories', type=int, default=5000)
+    p.add_argument('--test-trajectories', type=cli.integer(1), default=5000)
     p.add_argument('--test-seed', type=int, default=datasets.TEST_SEED)
-    p.add_argument('--epochs', type=int)
+    p.add_argument('--epochs', type=cli.integer(1))
     p.add_argument('--lift-dim', type=int, help='K, the number of learned observables')
     p.add_argument('--batch-size', type=int)
-    p.add_argument('--learning-rate', type=float)
+    p.add_argument('--learning-rate', type=cli.number(above=0))
     p.add_argument('--seed', type=int)
-    p.add_argument('--device', help='torch device (default: cuda if present, else cpu)')
-    p.add_argument('--threads', type=int, help='torch CPU threads')
+    p.add_argument('--device', type=cli.torch_device,
+                   help='torch device (default: cuda if present, else cpu)')
+    p.add_argument('--threads', type=cli.integer(1), help='torch CPU threads')
     p.add_argument('--resume', action='store_true', help='continue from <out>/checkpoint.pt')
     p.add_argument('--init', help='model directory to fine-tune (its config, with the flags '
                    'given)')

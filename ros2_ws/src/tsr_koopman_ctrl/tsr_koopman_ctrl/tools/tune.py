@@ -30,6 +30,7 @@ quadratic-cost laws' state weight (six more dimensions).
 """
 
 import argparse
+import json
 import os
 import re
 import subprocess
@@ -43,6 +44,7 @@ from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import fields, parse_value
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS, HELD_OUT_STARTS
 from tsr_koopman_ctrl.evaluation.starts import SWING_TUNING_STARTS
+from tsr_koopman_ctrl.tools import cli
 from tsr_koopman_ctrl.tools.report import write_results
 
 #: Score of a start that does not settle, halts or swings too far: twice the 20-tau run.
@@ -172,6 +174,22 @@ def fixed_settings(args):
     return fixed
 
 
+def check_journal(storage):
+    """A journal file given as --storage must be absent, empty or a journal: Optuna would
+    append its records to any other file before failing."""
+    if '://' in storage or not os.path.isfile(storage) or os.path.getsize(storage) == 0:
+        return
+    with open(storage, 'rb') as stream:
+        first = stream.readline()
+    try:
+        is_journal = 'op_code' in json.loads(first)
+    except (ValueError, TypeError):
+        is_journal = False
+    if not is_journal:
+        raise ValueError(f'--storage {storage} is not an Optuna journal file; nothing was '
+                         'written to it')
+
+
 def open_study(args):
     import optuna
     from optuna.storages import JournalStorage
@@ -296,8 +314,9 @@ def ratio_text(figures):
 def parser():
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--law', required=True, choices=sorted(CONTROLLERS))
-    p.add_argument('--trials', type=int, default=60, help='finished trials in the study')
-    p.add_argument('--jobs', type=int, default=1, help='worker processes on the study')
+    p.add_argument('--trials', type=cli.integer(1), default=60,
+                   help='finished trials in the study')
+    p.add_argument('--jobs', type=cli.integer(1), default=1, help='worker processes on the study')
     p.add_argument('--storage', help='journal file or database URL '
                    '(default: <out>/<study>.journal)')
     p.add_argument('--study', help='study name (default: <law>[_<fixed settings>]'
@@ -313,11 +332,11 @@ def parser():
     p.add_argument('--starts', choices=sorted(TUNING_STARTS), default='comparison',
                    help="the tuning starts: the four comparison starts ('comparison'), or those "
                    "and two with an initial swing ('swing'); the held-out starts never")
-    p.add_argument('--swing-max', type=float, default=0.8, help='largest |theta| a run may '
-                   'reach and still count as settled [rad]')
-    p.add_argument('--steps', type=int, default=2000)
+    p.add_argument('--swing-max', type=cli.number(above=0), default=0.8,
+                   help='largest |theta| a run may reach and still count as settled [rad]')
+    p.add_argument('--steps', type=cli.STEPS, default=2000)
     p.add_argument('--seed', type=int, default=0)
-    p.add_argument('--out', default=os.path.join('out', 'tune'))
+    p.add_argument('--out', default=os.path.join('out', 'tune'), type=cli.output_dir)
     p.add_argument('--fix', action='append', default=[], metavar='SETTING=VALUE',
                    help='hold a setting at a value instead of tuning it (repeatable; e.g. '
                    'state_weight=state for koopman_lqr)')
@@ -334,6 +353,7 @@ def main(argv=None):
     args.storage = args.storage or os.path.join(args.out, study_name(args) + '.journal')
     try:
         args.fixed = fixed_settings(args)
+        check_journal(args.storage)
     except ValueError as error:
         print(f'tune: {error}', file=sys.stderr)
         return 2

@@ -1,0 +1,67 @@
+"""argparse types shared by the tools: a bad number or output path is one usage line and exit
+status 2 before any work starts, not a traceback after an hour of training."""
+
+import argparse
+import math
+import os
+
+
+def integer(minimum=None, maximum=None):
+    """An int in [minimum, maximum] (either bound may be None)."""
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{text!r} is not an integer') from None
+        check_range(value, minimum, maximum)
+        return value
+    return parse
+
+
+def number(minimum=None, maximum=None, above=None):
+    """A finite float in [minimum, maximum], and > above where given."""
+    def parse(text):
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f'{text!r} is not a finite number')
+        if above is not None and value <= above:
+            raise argparse.ArgumentTypeError(f'{value:g} must be > {above:g}')
+        check_range(value, minimum, maximum)
+        return value
+    return parse
+
+
+def check_range(value, minimum, maximum):
+    if minimum is not None and value < minimum:
+        raise argparse.ArgumentTypeError(f'{value:g} must be >= {minimum:g}')
+    if maximum is not None and value > maximum:
+        raise argparse.ArgumentTypeError(f'{value:g} must be <= {maximum:g}')
+
+
+def output_dir(text):
+    """A directory to write in: absent (it is created) or a directory, never a file."""
+    if os.path.exists(text) and not os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f'{text} exists and is not a directory')
+    return text
+
+
+def torch_device(text):
+    """A torch device this machine has (cpu, cuda, cuda:1, ...)."""
+    import torch
+    try:
+        device = torch.device(text)
+    except RuntimeError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a torch device (cpu, cuda, '
+                                         'cuda:0, ...)') from None
+    if device.type == 'cuda' and not torch.cuda.is_available():
+        raise argparse.ArgumentTypeError(f'{text}: torch sees no CUDA device here')
+    return text
+
+
+#: ROS_DOMAIN_ID: DDS's port formula allows 0..232; 0..101 also stays clear of Linux's
+#: ephemeral ports (the ROS 2 docs, "The ROS_DOMAIN_ID").
+DOMAIN_ID = integer(0, 232)
+STEPS = integer(1)

@@ -1,0 +1,77 @@
+"""Bad options are one usage line and exit status 2 before any work starts, for every tool."""
+
+import importlib
+
+import pytest
+
+
+@pytest.fixture
+def text_file(tmp_path):
+    path = tmp_path / 'notes.txt'
+    path.write_text('my notes\n')
+    return path
+
+
+@pytest.fixture
+def bad_yaml(tmp_path):
+    path = tmp_path / 'bad.yaml'
+    path.write_text('a: [\n')
+    return path
+
+
+def run_tool(tool, argv):
+    """(exit status, stderr lines) of `python -m tsr_koopman_ctrl.tools.<tool> argv`."""
+    module = importlib.import_module(f'tsr_koopman_ctrl.tools.{tool}')
+    try:
+        return module.main([str(a) for a in argv])
+    except SystemExit as stop:
+        return stop.code
+
+
+@pytest.mark.parametrize('tool, argv, message', [
+    ('deploy', ['--steps', '0'], 'argument --steps: 0 must be >= 1'),
+    ('deploy', ['--domain', '999'], 'argument --domain: 999 must be <= 232'),
+    ('deploy', ['--timeout', 'nan'], "argument --timeout: 'nan' is not a finite number"),
+    ('deploy', ['--out', '{text_file}'], 'notes.txt exists and is not a directory'),
+    ('deploy', ['--model', 'no_such_model'], 'no_such_model: no such model directory'),
+    ('deploy', ['--controller', 'linear_lqr', '--model', 'koopman_default'],
+     '--model: linear_lqr uses no model'),
+    ('deploy', ['--namespace', 'bad!name'], "--namespace '/bad!name': Invalid namespace"),
+    ('deploy', ['--preset', '{bad_yaml}'], 'bad.yaml: not valid YAML (line 2)'),
+    ('deploy', ['--plant', '{bad_yaml}'], 'bad.yaml: not valid YAML (line 2)'),
+    ('compare', ['--steps', '0'], 'argument --steps: 0 must be >= 1'),
+    ('compare', ['--laws', 'linear_lqr', '--presets', '{bad_yaml}'], 'not valid YAML'),
+    ('robustness', ['--laws', 'pid'], "argument --laws: invalid choice: 'pid'"),
+    ('mpc_sweep', ['--horizons', '0'], 'argument --horizons: 0 must be >= 1'),
+    ('tune', ['--law', 'linear_lqr', '--trials', '0'], 'argument --trials: 0 must be >= 1'),
+    ('tune', ['--law', 'linear_lqr', '--swing-max', '-1'], '--swing-max: -1 must be > 0'),
+    ('train', ['--out', '{text_file}'], 'notes.txt exists and is not a directory'),
+    ('train', ['--out', 'm', '--threads', '-1'], 'argument --threads: -1 must be >= 1'),
+    ('train', ['--out', 'm', '--device', 'bogus'], "'bogus' is not a torch device"),
+    ('retrain', ['--out', 'm', '--learning-rate', 'nan'], "'nan' is not a finite number"),
+    ('evaluate', ['--sweep-epochs', '0'], 'argument --sweep-epochs: 0 must be >= 1'),
+    ('loop', ['--plant', 'actuator_weak', '--rounds', '0'], 'argument --rounds: 0 must be >= 1'),
+    ('loop', ['--plant', 'no_such_plant'], "no plant variant 'no_such_plant'"),
+    ('loop', ['--plant', 'actuator_weak', '--model', 'no_such_model'], 'no such model'),
+])
+def test_a_bad_option_is_one_usage_line_and_status_2(tool, argv, message, text_file, bad_yaml,
+                                                     tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    argv = [a.format(text_file=text_file, bad_yaml=bad_yaml) for a in argv]
+    assert run_tool(tool, argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and 'Traceback' not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['bad.yaml', 'notes.txt']  # no output
+
+
+def test_tune_leaves_a_storage_file_that_is_not_a_journal_alone(text_file, capsys):
+    assert run_tool('tune', ['--law', 'linear_lqr', '--storage', text_file]) == 2
+    assert 'is not an Optuna journal file; nothing was written to it' in capsys.readouterr().err
+    assert text_file.read_text() == 'my notes\n'
+
+
+def test_loop_refuses_to_mix_a_new_run_into_an_earlier_one(tmp_path, capsys):
+    (tmp_path / 'actuator_weak').mkdir()
+    (tmp_path / 'actuator_weak' / 'report.json').write_text('{}')
+    assert run_tool('loop', ['--plant', 'actuator_weak', '--out', tmp_path]) == 2
+    assert 'actuator_weak holds an earlier loop' in capsys.readouterr().err
