@@ -19,6 +19,21 @@ def bad_yaml(tmp_path):
     return path
 
 
+@pytest.fixture
+def bag_dir(tmp_path):
+    path = tmp_path / 'bag'
+    path.mkdir()
+    (path / 'metadata.yaml').write_text('rosbag2_bagfile_information: {}\n')
+    return path
+
+
+@pytest.fixture
+def typo_plant(tmp_path):
+    path = tmp_path / 'typo.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    actuator_gian: 0.9\n')
+    return path
+
+
 def run_tool(tool, argv):
     """(exit status, stderr lines) of `python -m tsr_koopman_ctrl.tools.<tool> argv`."""
     module = importlib.import_module(f'tsr_koopman_ctrl.tools.{tool}')
@@ -39,6 +54,7 @@ def run_tool(tool, argv):
     ('deploy', ['--namespace', 'bad!name'], "--namespace '/bad!name': Invalid namespace"),
     ('deploy', ['--preset', '{bad_yaml}'], 'bad.yaml: not valid YAML (line 2)'),
     ('deploy', ['--plant', '{bad_yaml}'], 'bad.yaml: not valid YAML (line 2)'),
+    ('deploy', ['--plant', '{typo_plant}'], "unknown plant parameters ['actuator_gian']"),
     ('compare', ['--steps', '0'], 'argument --steps: 0 must be >= 1'),
     ('compare', ['--laws', 'linear_lqr', '--presets', '{bad_yaml}'], 'not valid YAML'),
     ('robustness', ['--laws', 'pid'], "argument --laws: invalid choice: 'pid'"),
@@ -49,19 +65,25 @@ def run_tool(tool, argv):
     ('train', ['--out', 'm', '--threads', '-1'], 'argument --threads: -1 must be >= 1'),
     ('train', ['--out', 'm', '--device', 'bogus'], "'bogus' is not a torch device"),
     ('retrain', ['--out', 'm', '--learning-rate', 'nan'], "'nan' is not a finite number"),
+    ('retrain', ['--out', '{bag_dir}'], 'bag is a bag directory, not a model directory'),
     ('evaluate', ['--sweep-epochs', '0'], 'argument --sweep-epochs: 0 must be >= 1'),
     ('loop', ['--plant', 'actuator_weak', '--rounds', '0'], 'argument --rounds: 0 must be >= 1'),
     ('loop', ['--plant', 'no_such_plant'], "no plant variant 'no_such_plant'"),
     ('loop', ['--plant', 'actuator_weak', '--model', 'no_such_model'], 'no such model'),
 ])
 def test_a_bad_option_is_one_usage_line_and_status_2(tool, argv, message, text_file, bad_yaml,
-                                                     tmp_path, monkeypatch, capsys):
+                                                     typo_plant, bag_dir, tmp_path, monkeypatch,
+                                                     capsys):
     monkeypatch.chdir(tmp_path)
-    argv = [a.format(text_file=text_file, bad_yaml=bad_yaml) for a in argv]
+    argv = [a.format(text_file=text_file, bad_yaml=bad_yaml, typo_plant=typo_plant,
+                     bag_dir=bag_dir) for a in argv]
     assert run_tool(tool, argv) == 2
     err = capsys.readouterr().err
     assert message in err and 'Traceback' not in err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ['bad.yaml', 'notes.txt']  # no output
+    # Nothing written besides the fixtures' files.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['bad.yaml', 'bag', 'notes.txt',
+                                                          'typo.yaml']
+    assert [p.name for p in bag_dir.iterdir()] == ['metadata.yaml']
 
 
 def test_tune_leaves_a_storage_file_that_is_not_a_journal_alone(text_file, capsys):

@@ -48,6 +48,14 @@ def output_dir(text):
     return text
 
 
+def model_dir(text):
+    """A model directory to write: an output directory that is not a bag's (rosbag2 layout:
+    metadata.yaml beside the .mcap files)."""
+    if os.path.isfile(os.path.join(output_dir(text), 'metadata.yaml')):
+        raise argparse.ArgumentTypeError(f'{text} is a bag directory, not a model directory')
+    return text
+
+
 def torch_device(text):
     """A torch device this machine has (cpu, cuda, cuda:1, ...)."""
     import torch

@@ -83,7 +83,7 @@ def parser():
     p = _Quiet(prog='retrain', description=__doc__.split('\n\n')[0])
     p.add_argument('--bags', nargs='+', action='extend', required=True, metavar='BAG_OR_DIR',
                    help='bags to train on (a directory: every bag below it)')
-    p.add_argument('--out', required=True, type=cli.output_dir, help='model directory to write')
+    p.add_argument('--out', required=True, type=cli.model_dir, help='model directory to write')
     p.add_argument('--init', metavar='MODEL',
                    help='model to fine-tune (a directory or a shipped name)')
     p.add_argument('--from-scratch', action='store_true',

@@ -88,7 +88,7 @@ def structure_from_args(args):
 
 def parser():
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    p.add_argument('--out', required=True, type=cli.output_dir, help='model directory to write')
+    p.add_argument('--out', required=True, type=cli.model_dir, help='model directory to write')
     p.add_argument('--data', action='append', default=[], help='dataset file (repeatable)')
     p.add_argument('--trajectories', type=int, default=40_000,
                    help='trajectories to sample with the paper settings (0: none)')
