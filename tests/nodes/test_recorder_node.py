@@ -102,10 +102,14 @@ def test_a_matched_topic_that_stays_silent_is_logged_once(ros, start_node, tmp_p
 
 @pytest.mark.parametrize('params, message', [
     ({'types': ['counter']}, "cannot start: 'counter' is not a message type (pkg/msg/Type)"),
-    ({'types': ['std_msgs/msg/Nope']}, "cannot start: no message type 'std_msgs/msg/Nope'")])
-def test_a_bad_message_type_stops_the_recorder_before_any_bag_exists(start_node, tmp_path,
-                                                                     params, message):
+    ({'types': ['std_msgs/msg/Nope']}, "cannot start: no message type 'std_msgs/msg/Nope'"),
+    ({'output_dir': 'FILE'}, 'cannot start: [Errno 20] Not a directory')])
+def test_a_bad_message_type_or_output_dir_stops_the_recorder_before_any_bag_exists(
+        start_node, tmp_path, params, message):
     bags = tmp_path / 'bags'
+    if params.get('output_dir') == 'FILE':
+        params = {'output_dir': str(tmp_path / 'notes.txt')}
+        (tmp_path / 'notes.txt').write_text('my notes\n')
     recorder = start_recorder(start_node, bags, **params)
     assert recorder.wait(timeout=30) == 2
     log = (tmp_path / 'tsr_recorder.log').read_text()

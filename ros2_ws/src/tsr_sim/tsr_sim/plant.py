@@ -101,21 +101,15 @@ PLANT_PARAMETERS = {
 SCALE_PARAMETERS = ('orbit_rate', 'tether_length', 'mass')
 
 
-def check_names(values):
-    """ValueError naming any key of `values` that is not a plant parameter (a typo in a plant
-    file would otherwise be ignored: ROS drops parameters a node does not declare)."""
-    unknown = set(values) - set(PLANT_PARAMETERS) - set(SCALE_PARAMETERS) - {'max_tension',
-                                                                             'plant'}
-    if unknown:
-        raise ValueError(f'unknown plant parameters {sorted(unknown)}')
-
-
 def config_from_parameters(values, scale=None):
     """A PlantConfig from simulator parameters: any subset of PLANT_PARAMETERS (the defaults for
     the rest), the units (`orbit_rate`, `tether_length`, `mass`: the true plant's, else those of
     `scale`, else the paper's), `max_tension` [N] (default u = TENSION_LIMIT at those units),
     and `plant` (the variant's name, not part of the config)."""
-    check_names(values)
+    unknown = set(values) - set(PLANT_PARAMETERS) - set(SCALE_PARAMETERS) - {'max_tension',
+                                                                             'plant'}
+    if unknown:
+        raise ValueError(f'unknown plant parameters {sorted(unknown)}')
     scale = scale or Scale()
     scale = Scale(**{name: values.get(name, getattr(scale, name)) for name in SCALE_PARAMETERS})
     v = {name: values.get(name, spec[0]) for name, spec in PLANT_PARAMETERS.items()}

@@ -88,7 +88,8 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except RCLError as err:     # e.g. --params-file that is missing or not YAML
-        print(f'cannot start: {str(err).splitlines()[0]}', file=sys.stderr, flush=True)
+        print(f'cannot start: {(str(err).splitlines() or [repr(err)])[0]}', file=sys.stderr,
+              flush=True)
         return 2
     stop = []
     for signum in (signal.SIGINT, signal.SIGTERM):

@@ -42,9 +42,17 @@ def check_range(value, minimum, maximum):
 
 
 def output_dir(text):
-    """A directory to write in: absent (it is created) or a directory, never a file."""
+    """A directory to write in: a directory, or absent below one this user can write in (it is
+    created later), never a file or a path through one."""
     if os.path.exists(text) and not os.path.isdir(text):
         raise argparse.ArgumentTypeError(f'{text} exists and is not a directory')
+    existing = os.path.abspath(text)
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        raise argparse.ArgumentTypeError(f'{text}: {existing} is not a directory')
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f'{text}: {existing} is not writable')
     return text
 
 
@@ -62,10 +70,14 @@ def torch_device(text):
     try:
         device = torch.device(text)
     except RuntimeError:
-        raise argparse.ArgumentTypeError(f'{text!r} is not a torch device (cpu, cuda, '
-                                         'cuda:0, ...)') from None
-    if device.type == 'cuda' and not torch.cuda.is_available():
-        raise argparse.ArgumentTypeError(f'{text}: torch sees no CUDA device here')
+        device = None
+    if device is None or device.type not in ('cpu', 'cuda') or (
+            device.type == 'cpu' and device.index not in (None, 0)):
+        raise argparse.ArgumentTypeError(f'{text!r} is not a torch device this project '
+                                         'trains on (cpu, cuda, cuda:0, ...)')
+    if device.type == 'cuda' and (device.index or 0) >= torch.cuda.device_count():
+        raise argparse.ArgumentTypeError(f'{text}: torch sees {torch.cuda.device_count()} '
+                                         'CUDA devices here')
     return text
 
 

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 from tsr_sim import dynamics
-from tsr_sim.plant import check_names, plant_parameters
+from tsr_sim.plant import plant_parameters
 
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.control import CONTROLLERS
@@ -84,7 +84,6 @@ def parse_args(argv):
         parser.error(f'--x0 {list(args.x0)} is outside the model domain (finite, l - 1 > -1)')
     try:
         args.plant_parameters = plant_parameters(args.plant)
-        check_names(args.plant_parameters)       # the values: the simulator checks them
         check_models(args)
     except ValueError as error:
         parser.error(str(error))

@@ -180,11 +180,12 @@ def check_journal(storage):
     if '://' in storage or not os.path.isfile(storage) or os.path.getsize(storage) == 0:
         return
     with open(storage, 'rb') as stream:
-        first = stream.readline()
+        first = stream.readline(1 << 16)
     try:
-        is_journal = 'op_code' in json.loads(first)
-    except (ValueError, TypeError):
-        is_journal = False
+        record = json.loads(first)
+    except ValueError:
+        record = None
+    is_journal = isinstance(record, dict) and 'op_code' in record
     if not is_journal:
         raise ValueError(f'--storage {storage} is not an Optuna journal file; nothing was '
                          'written to it')
