@@ -86,8 +86,9 @@ def test_the_safe_tension_before_any_state_answers_no_step(ros, start_node):
                              lambda m: commands.append((m.step, m.tension)), ros_io.LOOP_QOS)
     node.create_subscription(ControllerStatus, wire.CONTROLLER_STATUS_TOPIC,
                              lambda m: statuses.append((m.step, m.status)), ros_io.LOOP_QOS)
-    ros.spin_until(lambda: len(commands) >= 2 and state_pub.get_subscription_count() > 0,
-                   timeout=30.0, what='safe tensions before any state')
+    ros.spin_until(lambda: len(commands) >= 2 and statuses
+                   and state_pub.get_subscription_count() > 0,
+                   timeout=30.0, what='safe tensions and a status before any state')
     safe = (wire.NO_STEP, pytest.approx(SCALE.u_to_tension(SAFE_U)))
     assert all(command == safe for command in commands)
     assert (wire.NO_STEP, ControllerStatus.SAFE_TENSION) in statuses
@@ -134,26 +135,33 @@ def test_a_repeated_state_gets_its_command_again_without_running_the_law_twice(r
 
     from tsr_koopman_ctrl.control import closed_loop, make_controller
     want_x, want_u = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE, 2)
+    # state_timeout 0.5 s: until the first state the controller sends safe tensions and their
+    # statuses (step NO_STEP, answering no state), which tell this side that both topics have
+    # matched both ways. Matched on this side alone was not enough: a status published before
+    # the controller's writer matched was lost (`.ci/run`, 2026-12-01: 1 of 396).
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
-               {'controller': 'linear_lqr'})
+               {'controller': 'linear_lqr', 'state_timeout': 0.5})
     node = ros.node
-    commands, statuses = [], []
+    commands, statuses, safe = [], [], set()
+
+    def on_command(m):
+        if m.step == wire.NO_STEP:
+            safe.add('command')
+        else:
+            commands.append((m.step, m.tension))
+
+    def on_status(m):
+        if m.step == wire.NO_STEP:
+            safe.add('status')
+        else:
+            statuses.append(m.step)
     state_pub = node.create_publisher(TsrState, wire.STATE_TOPIC, ros_io.LOOP_QOS)
-    # Answers to states only: on a loaded machine discovery can outlast the 5-s state timeout,
-    # and the safe tension (step NO_STEP, answering no state) comes first.
-    command_sub = node.create_subscription(
-        TensionCommand, wire.TENSION_TOPIC,
-        lambda m: m.step != wire.NO_STEP and commands.append((m.step, m.tension)),
-        ros_io.LOOP_QOS)
-    status_sub = node.create_subscription(
-        ControllerStatus, wire.CONTROLLER_STATUS_TOPIC,
-        lambda m: m.step != wire.NO_STEP and statuses.append(m.step), ros_io.LOOP_QOS)
-    # Matched on this side, not merely in the graph: a command published before this node's
-    # subscription matched was lost (1 timeout in 352 tests from a clean clone, 2026-12-01).
-    ros.spin_until(lambda: state_pub.get_subscription_count() > 0
-                   and command_sub.get_publisher_count() > 0
-                   and status_sub.get_publisher_count() > 0,
-                   timeout=30.0, what='the controller to appear')
+    node.create_subscription(TensionCommand, wire.TENSION_TOPIC, on_command, ros_io.LOOP_QOS)
+    node.create_subscription(ControllerStatus, wire.CONTROLLER_STATUS_TOPIC, on_status,
+                             ros_io.LOOP_QOS)
+    ros.spin_until(lambda: safe == {'command', 'status'}
+                   and state_pub.get_subscription_count() > 0,
+                   timeout=30.0, what="the controller's safe tension and its status")
 
     def state(step):
         return wire.state_to_msg(SCALE.state_to_si(want_x[step]), step,
