@@ -228,15 +228,15 @@ def plant_file(name):
     if os.path.isfile(name):
         return name
     tried = [os.path.abspath(name)]
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        candidate = os.path.join(get_package_share_directory('tsr_sim'), 'config', 'plants',
-                                 f'{name}.yaml')
+    from tsr_sim.share import NOT_SOURCED, share_directory
+    share = share_directory('tsr_sim')
+    if share is None:
+        tried.append(f'share/tsr_sim/config/plants ({NOT_SOURCED})')
+    else:
+        candidate = os.path.join(share, 'config', 'plants', f'{name}.yaml')
         if os.path.isfile(candidate):
             return candidate
         tried.append(candidate)
-    except (ImportError, LookupError, OSError):     # OSError: AMENT_PREFIX_PATH unset
-        tried.append('share/tsr_sim/config/plants (package not found: is the workspace sourced?)')
     raise ValueError(f'no plant variant {name!r} (tried {", ".join(tried)})')
 
 

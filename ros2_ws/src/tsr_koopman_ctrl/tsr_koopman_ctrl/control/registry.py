@@ -38,16 +38,13 @@ def preset(name):
     import os
 
     from tsr_sim.parameter_file import node_parameters
+    from tsr_sim.share import NOT_SOURCED, share_directory
     path = name
     if not os.path.isfile(path):
         # By name, from the installed package: a path works without a sourced workspace.
-        try:
-            from ament_index_python.packages import get_package_share_directory
-            path = os.path.join(get_package_share_directory('tsr_koopman_ctrl'), 'config',
-                                f'{name}.yaml')
-        except (ImportError, LookupError, OSError):     # OSError: AMENT_PREFIX_PATH unset
-            path = ('share/tsr_koopman_ctrl/config (package not found: is the workspace '
-                    'sourced?)')
+        share = share_directory('tsr_koopman_ctrl')
+        path = (f'share/tsr_koopman_ctrl/config ({NOT_SOURCED})' if share is None
+                else os.path.join(share, 'config', f'{name}.yaml'))
         if not os.path.isfile(path):
             raise ValueError(f'no settings preset {name!r} (tried {os.path.abspath(name)}, '
                              f'{path})')

@@ -7,6 +7,8 @@ data_files) and found through the ament index, so a node started from any direct
 
 import os
 
+from tsr_sim.share import NOT_SOURCED, share_directory
+
 PACKAGE = 'tsr_koopman_ctrl'
 #: The model the controller uses unless told otherwise (models/README.md says how it was trained).
 DEFAULT_MODEL = 'koopman_default'
@@ -14,15 +16,8 @@ DEFAULT_MODEL = 'koopman_default'
 
 def installed_models_dir():
     """share/tsr_koopman_ctrl/models of the sourced workspace, or None if it is not found."""
-    try:
-        from ament_index_python.packages import (get_package_share_directory,
-                                                 PackageNotFoundError)
-    except ImportError:
-        return None
-    try:
-        return os.path.join(get_package_share_directory(PACKAGE), 'models')
-    except (PackageNotFoundError, OSError):     # OSError: AMENT_PREFIX_PATH unset
-        return None
+    share = share_directory(PACKAGE)
+    return None if share is None else os.path.join(share, 'models')
 
 
 def resolve(model):
@@ -41,6 +36,6 @@ def resolve(model):
             return candidate
         tried.append(candidate)
     elif shipped is None:
-        tried.append(f'share/{PACKAGE}/models (package not found: is the workspace sourced?)')
+        tried.append(f'share/{PACKAGE}/models ({NOT_SOURCED})')
     from tsr_koopman_ctrl.model.model_file import ModelFileError
     raise ModelFileError(f'{model}: no such model directory (tried {", ".join(tried)})')
