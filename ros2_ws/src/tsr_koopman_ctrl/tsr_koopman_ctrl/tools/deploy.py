@@ -103,13 +103,12 @@ def check_models(args):
     """Load the model of every law that will run and has one: a bad one is a usage error
     here, not a controller that fails to start after the other nodes have."""
     laws = sorted(CONTROLLERS) if args.compare else [args.controller]
-    if args.model is not None and not any(
-            'model' in law_class(law).Settings.__dataclass_fields__ for law in laws):
+    with_model = [law for law in laws if 'model' in law_class(law).Settings.__dataclass_fields__]
+    if args.model is not None and not with_model:
         raise ValueError(f'--model: {args.controller} uses no model')
-    for law in laws:
-        settings = law_class(law).Settings
-        if 'model' in settings.__dataclass_fields__:
-            LiftedModel.load(args.law_settings.get(law, {}).get('model', settings().model))
+    for law in with_model:
+        default = law_class(law).Settings().model
+        LiftedModel.load(args.law_settings.get(law, {}).get('model', default))
 
 
 #: --set sections that are not laws: the observer (offset-free control) and the excitation.
