@@ -143,6 +143,18 @@ def test_plant_files_set_the_variant_and_the_bias_is_in_newtons():
         plant_parameters('bogus')
 
 
+def test_a_plant_file_with_a_name_the_simulator_lacks_is_refused(tmp_path):
+    """ROS would drop the misspelt name and simulate the nominal actuator without a word."""
+    path = tmp_path / 'weak.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    actuator_gian: 0.9\n')
+    with pytest.raises(ValueError, match="weak.yaml: the simulator has no parameter "
+                       "'actuator_gian' \\(did you mean 'actuator_gain'\\?\\)"):
+        plant_parameters(str(path))
+    path.write_text('/**:\n  ros__parameters:\n    actuator_gain: 0.9\n    rate_hz: 50.0\n'
+                    '    mass: 25.0\n    use_sim_time: false\n')
+    assert plant_parameters(str(path))['rate_hz'] == 50.0
+
+
 def test_out_of_plane_matches_the_3d_equations():
     """Williams 2008 3-D model, written out: the controller still sees 4 states."""
     u, samples, beta = 2.8, 200, (0.2, 0.05)

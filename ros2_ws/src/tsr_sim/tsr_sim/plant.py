@@ -100,6 +100,44 @@ PLANT_PARAMETERS = {
 
 SCALE_PARAMETERS = ('orbit_rate', 'tether_length', 'mass')
 
+#: The simulator node's other parameters, declared once: name -> (default, description, low,
+#: high); a default of None is computed from the units (the node passes it). With
+#: PLANT_PARAMETERS, SCALE_PARAMETERS and ROS_NODE_PARAMETERS they are every name a simulator
+#: parameter file may hold: ROS drops a name the node did not declare without a word, so
+#: `plant_parameters` refuses one instead.
+SIMULATOR_PARAMETERS = {
+    'mode': ('lockstep', 'lockstep or timed', None, None),
+    'plant': ('nominal', 'name of the plant variant (recorded in the bag; the variant itself is '
+              'set by the plant parameters, e.g. from config/plants/<name>.yaml)', None, None),
+    'max_tension': (None, f'largest accepted tension [N] (default: u = '
+                    f'{dynamics.TENSION_LIMIT:g})', 1e-9, 1e9),
+    'command_timeout': (1.0, 'timed mode: wall seconds without a valid command before '
+                        'safe_tension is applied', 0.001, 3600.0),
+    'safe_tension': (None, 'timed mode: tension [N] applied on command timeout (default: the '
+                     'equilibrium tension u = 3)', 0.0, 1e9),
+    'republish_period': (0.5, 'lockstep: wall seconds without a command before the state is '
+                         'published again', 0.01, 60.0),
+    'progress_every': (100, 'log a progress line every N steps (0: never)', 0, 10 ** 9),
+    'wait_for_subscribers': (0, 'lockstep: publish no state until the state topic has this '
+                             'many subscribers (controller, recorder)', 0, 1000),
+    'exit_on_finish': (False, 'shut the node down when max_steps is reached or the state '
+                       'leaves the domain', None, None),
+    'rate_hz': (100.0, 'timed: simulation steps per wall second', 0.01, 1e5),
+}
+
+#: Declared by every rclpy node of Jazzy.
+ROS_NODE_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+
+
+def check_simulator_parameter_names(names, source):
+    """ValueError naming `source` if a name is none of the simulator's parameters."""
+    import difflib
+    known = {*PLANT_PARAMETERS, *SCALE_PARAMETERS, *SIMULATOR_PARAMETERS, *ROS_NODE_PARAMETERS}
+    for name in sorted(set(names) - known):
+        close = difflib.get_close_matches(name, known, n=1)
+        hint = f' (did you mean {close[0]!r}?)' if close else ''
+        raise ValueError(f'{source}: the simulator has no parameter {name!r}{hint}')
+
 
 def config_from_parameters(values, scale=None):
     """A PlantConfig from simulator parameters: any subset of PLANT_PARAMETERS (the defaults for
@@ -241,6 +279,10 @@ def plant_file(name):
 
 
 def plant_parameters(name):
-    """The simulator parameters of a plant variant file (its ros__parameters)."""
+    """The simulator parameters of a plant variant file (its ros__parameters); ValueError for
+    a name the simulator does not declare."""
     from tsr_sim.parameter_file import node_parameters
-    return node_parameters(plant_file(name))
+    path = plant_file(name)
+    parameters = node_parameters(path)
+    check_simulator_parameter_names(parameters, path)
+    return parameters

@@ -26,7 +26,8 @@ from tsr_msgs.msg import RunInfo, SimStatus, TensionCommand, TsrState
 from tsr_msgs.srv import ResetSim
 
 from tsr_sim import dynamics
-from tsr_sim.plant import config_from_parameters, Plant, PLANT_PARAMETERS, Status
+from tsr_sim.plant import (config_from_parameters, Plant, PLANT_PARAMETERS,
+                           SIMULATOR_PARAMETERS, Status)
 from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, LATCHED_QOS,
                             LOOP_PUBLISHER_QOS, run_node)
 from tsr_sim.wire import (CLOCK_TOPIC, NO_STEP, RESET_SERVICE, RUN_INFO_TOPIC, run_info_msg,
@@ -37,34 +38,21 @@ class SimNode(Node):
 
     def __init__(self):
         super().__init__('tsr_sim')
-        self.mode = declare(self, 'mode', 'lockstep', 'lockstep or timed')
+        self.mode = self._declare('mode')
         if self.mode not in ('lockstep', 'timed'):
             raise ValueError(f"parameter mode must be 'lockstep' or 'timed', got {self.mode!r}")
-        self.plant_name = declare(self, 'plant', 'nominal', 'name of the plant variant (recorded '
-                                  'in the bag; the variant itself is set by the parameters '
-                                  'below, e.g. from config/plants/<name>.yaml)')
+        self.plant_name = self._declare('plant')
         self.plant = Plant(self._plant_config())
         self.scale = self.plant.config.scale
-        self.command_timeout = declare(
-            self, 'command_timeout', 1.0, 'timed mode: wall seconds without a valid command '
-            'before safe_tension is applied', 0.001, 3600.0)
-        self.safe_tension = declare(
-            self, 'safe_tension', self.scale.u_to_tension(dynamics.EQUILIBRIUM_TENSION),
-            'timed mode: tension [N] applied on command timeout (default: the equilibrium '
-            'tension u = 3)', 0.0, 1e9)
-        self.republish_period = declare(
-            self, 'republish_period', 0.5, 'lockstep: wall seconds without a command before the '
-            'state is published again', 0.01, 60.0)
-        self.progress_every = declare(self, 'progress_every', 100,
-                                      'log a progress line every N steps (0: never)', 0, 10**9)
-        self.wait_for_subscribers = declare(
-            self, 'wait_for_subscribers', 0, 'lockstep: publish no state until the state topic '
-            'has this many subscribers (controller, recorder)', 0, 1000)
+        self.command_timeout = self._declare('command_timeout')
+        self.safe_tension = self._declare(
+            'safe_tension', self.scale.u_to_tension(dynamics.EQUILIBRIUM_TENSION))
+        self.republish_period = self._declare('republish_period')
+        self.progress_every = self._declare('progress_every')
+        self.wait_for_subscribers = self._declare('wait_for_subscribers')
         self.done = False   # run_node stops spinning once set
         self.last_accepted = None   # (step, tension) of the last command accepted in lockstep
-        self.exit_on_finish = declare(self, 'exit_on_finish', False,
-                                      'shut the node down when max_steps is reached or the '
-                                      'state leaves the domain')
+        self.exit_on_finish = self._declare('exit_on_finish')
 
         self.state_pub = self.create_publisher(TsrState, STATE_TOPIC, LOOP_PUBLISHER_QOS)
         self.status_pub = self.create_publisher(SimStatus, SIM_STATUS_TOPIC, LATCHED_QOS)
@@ -75,8 +63,7 @@ class SimNode(Node):
             self.get_fully_qualified_name(), 'simulator', self.configuration(),
             self.sim_stamp()))
 
-        rate_hz = declare(self, 'rate_hz', 100.0, 'timed: simulation steps per wall second',
-                          0.01, 1e5)
+        rate_hz = self._declare('rate_hz')
         self.held_tension = self.safe_tension
         self.command_timeouts = 0
         self.last_command_wall = time.monotonic()
@@ -101,10 +88,15 @@ class SimNode(Node):
         scale = declare_scale(self)
         values = {name: declare(self, name, default, description, low, high)
                   for name, (default, description, low, high) in PLANT_PARAMETERS.items()}
-        values['max_tension'] = declare(
-            self, 'max_tension', scale.u_to_tension(dynamics.TENSION_LIMIT),
-            f'largest accepted tension [N] (default: u = {dynamics.TENSION_LIMIT:g})', 1e-9, 1e9)
+        values['max_tension'] = self._declare(
+            'max_tension', scale.u_to_tension(dynamics.TENSION_LIMIT))
         return config_from_parameters(values, scale)
+
+    def _declare(self, name, computed_default=None):
+        """Declare one of `plant.SIMULATOR_PARAMETERS` (a None default is `computed_default`)."""
+        default, description, low, high = SIMULATOR_PARAMETERS[name]
+        return declare(self, name, computed_default if default is None else default,
+                       description, low, high)
 
     def configuration(self):
         """What the bag records about this simulator (RunInfo): the plant and the units."""
