@@ -53,6 +53,22 @@ def test_bad_parameters_fail_at_start_with_one_line(domain_id):
         assert result.stderr.startswith('cannot start:') and 'Traceback' not in result.stderr
 
 
+@pytest.mark.parametrize('content, problem', [
+    (None, 'No such file or directory'), ('a: [\n', 'not a YAML file'),
+    (b'\xff\xfe', 'not a YAML file'),
+    ('[1]\n', 'not a parameter file (<node>: ros__parameters: ...)'),
+    ('/**:\n  ros__parameters: {mode: timed}\n', None)])
+def test_a_params_file_is_checked_before_rcl_logs_its_own_error(tmp_path, content, problem):
+    from tsr_sim.ros_io import params_file_problem
+    path = tmp_path / 'params.yaml'
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is not None:
+        path.write_text(content)
+    found = params_file_problem(['sim_node', '--ros-args', '--params-file', str(path)])
+    assert found == (problem and f'--params-file {path}: {problem}')
+
+
 @pytest.mark.ros
 def test_controller_from_any_directory_commands_the_plant_with_the_shipped_model(
         ros, start_node, tmp_path):

@@ -68,6 +68,25 @@ def spin_until_quiet(executor, progress, quiet=0.3, limit=10.0):
             last, last_change = progress(), time.monotonic()
 
 
+def params_file_problem(argv):
+    """What is wrong with the first `--params-file` of `argv` that cannot be read as a YAML
+    mapping (None if each can); rcl checks the rest."""
+    import yaml
+    for flag, path in zip(argv, argv[1:]):
+        if flag != '--params-file':
+            continue
+        try:
+            with open(path) as stream:
+                document = yaml.safe_load(stream)
+        except OSError as error:
+            return f'--params-file {path}: {error.strerror}'
+        except (UnicodeDecodeError, yaml.YAMLError):
+            return f'--params-file {path}: not a YAML file'
+        if not isinstance(document, dict):
+            return f'--params-file {path}: not a parameter file (<node>: ros__parameters: ...)'
+    return None
+
+
 def run_node(make_node, on_exit=None, args=None, drain=None):
     """The node life cycle every node of the project shares (Jazzy).
 
@@ -85,6 +104,10 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     from rclpy.impl.implementation_singleton import rclpy_implementation
     from rclpy.signals import SignalHandlerOptions
     RCLError = rclpy_implementation.RCLError
+    problem = params_file_problem(sys.argv if args is None else args)
+    if problem:     # said before rcl, which would log its own [ERROR] line first
+        print(f'cannot start: {problem}', file=sys.stderr, flush=True)
+        return 2
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except RCLError as err:     # e.g. --params-file that is missing or not YAML
