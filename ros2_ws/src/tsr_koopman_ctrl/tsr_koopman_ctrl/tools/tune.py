@@ -22,7 +22,8 @@ first trial, so tuning never reports worse than the default. The study lives in 
 journal file here (several processes share it: --jobs starts them; a second command with another
 --seed adds workers), a database URL where users have a server; running the command again resumes
 it up to --trials in total. At the end the best settings are scored on the held-out starts
-(`HELD_OUT_STARTS`), which the tuning never saw, and written to <out>/<study>.json and .md.
+(`HELD_OUT_STARTS`), which the tuning never saw, in --jobs processes, and written to
+<out>/<study>.json and .md.
 `--fix` holds a setting out of the search: koopman_lqr's q only counts with state_weight
 'state', and a joint search samples that form a few times only (4 of 60 trials in docs/tuning).
 `--also` adds a setting the default search leaves out: `q_cross`, the cross terms of the
@@ -266,16 +267,40 @@ def run_workers(args, argv):
     return study
 
 
+def run_scorings(scorings, jobs):
+    """{key: score(*arguments)} for {key: arguments}, in `jobs` processes, a line as each ends
+    (the report of a slow law is minutes: koopman_nmpc's 22 on one core)."""
+    from concurrent.futures import as_completed, ProcessPoolExecutor
+    import multiprocessing
+    print(f'scoring the default and the best settings on the tuning and the held-out starts '
+          f'({len(scorings)} scorings, {jobs} process(es))', flush=True)
+    results = {}
+    if jobs == 1:
+        for key, arguments in scorings.items():
+            results[key] = score(*arguments)
+            print(f'  {key}: {results[key][0]:.3f} ({len(results)}/{len(scorings)})', flush=True)
+        return results
+    # spawn: a forked child would inherit the parent's torch and Optuna state mid-use
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn')) as pool:
+        futures = {pool.submit(score, *arguments): key for key, arguments in scorings.items()}
+        for future in as_completed(futures):
+            results[futures[future]] = future.result()
+            print(f'  {futures[future]}: {future.result()[0]:.3f} '
+                  f'({len(results)}/{len(scorings)})', flush=True)
+    return {key: results[key] for key in scorings}     # the report's order
+
+
 def report(args, study):
     best = study.best_trial
     settings = {k: tuple(v) if isinstance(v, list) else v
                 for k, v in best.user_attrs['settings'].items()}
-    results = {}
-    for label, starts in (('tuning', TUNING_STARTS[args.starts]), ('held_out', HELD_OUT_STARTS)):
-        for tag, values in (('default', dict(args.fixed)), ('tuned', settings)):
-            value, runs = score(args.law, values, starts, args.swing_max, args.steps,
-                                args.objective, args.penalty == 'graded')
-            results[f'{label}_{tag}'] = {'score': value, 'runs': runs}
+    scorings = {f'{label}_{tag}': (args.law, values, starts, args.swing_max, args.steps,
+                                   args.objective, args.penalty == 'graded')
+                for label, starts in (('tuning', TUNING_STARTS[args.starts]),
+                                      ('held_out', HELD_OUT_STARTS))
+                for tag, values in (('default', dict(args.fixed)), ('tuned', settings))}
+    results = {key: {'score': value, 'runs': runs}
+               for key, (value, runs) in run_scorings(scorings, args.jobs).items()}
     summary = {'law': args.law, 'study': study_name(args), 'trials': finished(study),
                'swing_max': args.swing_max, 'objective': args.objective,
                'penalty': args.penalty, 'starts': args.starts, 'fixed': args.fix,
