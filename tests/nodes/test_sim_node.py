@@ -139,12 +139,12 @@ def test_timed_mode_applies_safe_tension_without_commands(ros, start_node, rate_
     ros.spin_until(lambda: max(driver.states) > 50, what='time to advance without commands')
 
 
-def test_the_node_declares_exactly_the_parameters_a_plant_file_may_set(ros, start_node):
-    """`plant.check_simulator_parameter_names` knows the simulator's names without ROS; the
-    running node, asked over its parameter service, declares the same ones."""
+def test_the_node_declares_the_parameters_of_the_tables_and_nothing_else(ros, start_node):
+    """The simulator's names are known without ROS (`tsr_sim.plant`'s tables, which plant
+    files and config/sim.yaml are checked against); the running node, asked over its parameter
+    service, declares the same ones and rclpy's own two."""
     from rcl_interfaces.srv import ListParameters
-    from tsr_sim.plant import (PLANT_PARAMETERS, ROS_NODE_PARAMETERS, SCALE_PARAMETERS,
-                               SIMULATOR_PARAMETERS)
+    from tsr_sim.plant import PLANT_PARAMETERS, SCALE_PARAMETERS, SIMULATOR_PARAMETERS
     start_node('tsr_sim', 'sim_node', 'tsr_sim', SIM_PARAMS)
     client = ros.node.create_client(ListParameters, '/tsr_sim/list_parameters')
     assert client.wait_for_service(timeout_sec=10.0)
@@ -152,4 +152,4 @@ def test_the_node_declares_exactly_the_parameters_a_plant_file_may_set(ros, star
     ros.spin_until(future.done, what='the parameter list')
     declared = set(future.result().result.names)
     assert declared == {*PLANT_PARAMETERS, *SCALE_PARAMETERS, *SIMULATOR_PARAMETERS,
-                        *ROS_NODE_PARAMETERS}
+                        'use_sim_time', 'start_type_description_service'}

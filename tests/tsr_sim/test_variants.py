@@ -143,16 +143,24 @@ def test_plant_files_set_the_variant_and_the_bias_is_in_newtons():
         plant_parameters('bogus')
 
 
-def test_a_plant_file_with_a_name_the_simulator_lacks_is_refused(tmp_path):
-    """ROS would drop the misspelt name and simulate the nominal actuator without a word."""
+def test_a_plant_file_with_a_name_that_is_not_a_plant_parameter_is_refused(tmp_path):
+    """ROS would drop the misspelt name and simulate the nominal actuator without a word; a
+    simulator setting that is not the plant's (deploy sets those) is refused too, so a plant
+    file means the same to `deploy --plant` and to `closed_loop(plant=...)`."""
     path = tmp_path / 'weak.yaml'
-    path.write_text('/**:\n  ros__parameters:\n    actuator_gian: 0.9\n')
-    with pytest.raises(ValueError, match="weak.yaml: the simulator has no parameter "
-                       "'actuator_gian' \\(did you mean 'actuator_gain'\\?\\)"):
-        plant_parameters(str(path))
-    path.write_text('/**:\n  ros__parameters:\n    actuator_gain: 0.9\n    rate_hz: 50.0\n'
-                    '    mass: 25.0\n    use_sim_time: false\n')
-    assert plant_parameters(str(path))['rate_hz'] == 50.0
+    for content, message in (
+            ('actuator_gian: 0.9', "'actuator_gian' is not a plant parameter "
+             "(did you mean 'actuator_gain'?)"),
+            ('rate_hz: 50.0', "'rate_hz' is not a plant parameter"),
+            ('1: 2\n    bogus: 3', "1 is not a plant parameter")):
+        path.write_text(f'/**:\n  ros__parameters:\n    {content}\n')
+        with pytest.raises(ValueError) as refused:
+            plant_parameters(str(path))
+        assert str(refused.value) == f'{path}: {message}'
+    path.write_text('/**:\n  ros__parameters:\n    actuator_gain: 0.9\n    mass: 25.0\n'
+                    '    max_tension: 20.0\n    plant: weak\n')
+    weak = config_from_parameters(plant_parameters(str(path)), Scale())
+    assert (weak.variant.actuator_gain, weak.scale.mass, weak.max_tension) == (0.9, 25.0, 20.0)
 
 
 def test_out_of_plane_matches_the_3d_equations():

@@ -101,10 +101,8 @@ PLANT_PARAMETERS = {
 SCALE_PARAMETERS = ('orbit_rate', 'tether_length', 'mass')
 
 #: The simulator node's other parameters, declared once: name -> (default, description, low,
-#: high); a default of None is computed from the units (the node passes it). With
-#: PLANT_PARAMETERS, SCALE_PARAMETERS and ROS_NODE_PARAMETERS they are every name a simulator
-#: parameter file may hold: ROS drops a name the node did not declare without a word, so
-#: `plant_parameters` refuses one instead.
+#: high); a default of None is computed from the units (the node passes it). The node declares
+#: these, PLANT_PARAMETERS and SCALE_PARAMETERS, nothing else (rclpy adds its own).
 SIMULATOR_PARAMETERS = {
     'mode': ('lockstep', 'lockstep or timed', None, None),
     'plant': ('nominal', 'name of the plant variant (recorded in the bag; the variant itself is '
@@ -125,18 +123,19 @@ SIMULATOR_PARAMETERS = {
     'rate_hz': (100.0, 'timed: simulation steps per wall second', 0.01, 1e5),
 }
 
-#: Declared by every rclpy node of Jazzy.
-ROS_NODE_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+#: What a plant file (config/plants/*.yaml, `deploy --plant`, `closed_loop(plant=...)`) may
+#: set: the plant, its units, its tension limit and its name.
+PLANT_FILE_PARAMETERS = (*PLANT_PARAMETERS, *SCALE_PARAMETERS, 'max_tension', 'plant')
 
 
-def check_simulator_parameter_names(names, source):
-    """ValueError naming `source` if a name is none of the simulator's parameters."""
+def check_plant_parameter_names(names, source):
+    """ValueError naming `source` and the first name that is not a plant parameter (ROS would
+    drop a misspelt one without a word), with the closest one if there is one."""
     import difflib
-    known = {*PLANT_PARAMETERS, *SCALE_PARAMETERS, *SIMULATOR_PARAMETERS, *ROS_NODE_PARAMETERS}
-    for name in sorted(set(names) - known):
-        close = difflib.get_close_matches(name, known, n=1)
+    for name in sorted(set(names) - set(PLANT_FILE_PARAMETERS), key=str):
+        close = difflib.get_close_matches(str(name), PLANT_FILE_PARAMETERS, n=1)
         hint = f' (did you mean {close[0]!r}?)' if close else ''
-        raise ValueError(f'{source}: the simulator has no parameter {name!r}{hint}')
+        raise ValueError(f'{source}: {name!r} is not a plant parameter{hint}')
 
 
 def config_from_parameters(values, scale=None):
@@ -144,10 +143,9 @@ def config_from_parameters(values, scale=None):
     the rest), the units (`orbit_rate`, `tether_length`, `mass`: the true plant's, else those of
     `scale`, else the paper's), `max_tension` [N] (default u = TENSION_LIMIT at those units),
     and `plant` (the variant's name, not part of the config)."""
-    unknown = set(values) - set(PLANT_PARAMETERS) - set(SCALE_PARAMETERS) - {'max_tension',
-                                                                             'plant'}
+    unknown = set(values) - set(PLANT_FILE_PARAMETERS)
     if unknown:
-        raise ValueError(f'unknown plant parameters {sorted(unknown)}')
+        raise ValueError(f'unknown plant parameters {sorted(unknown, key=str)}')
     scale = scale or Scale()
     scale = Scale(**{name: values.get(name, getattr(scale, name)) for name in SCALE_PARAMETERS})
     v = {name: values.get(name, spec[0]) for name, spec in PLANT_PARAMETERS.items()}
@@ -279,10 +277,10 @@ def plant_file(name):
 
 
 def plant_parameters(name):
-    """The simulator parameters of a plant variant file (its ros__parameters); ValueError for
-    a name the simulator does not declare."""
+    """The plant parameters of a plant variant file (its ros__parameters); ValueError for
+    a name that is not a plant parameter."""
     from tsr_sim.parameter_file import node_parameters
     path = plant_file(name)
     parameters = node_parameters(path)
-    check_simulator_parameter_names(parameters, path)
+    check_plant_parameter_names(parameters, path)
     return parameters

@@ -14,6 +14,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from tsr_sim.parameter_file import params_file_problem
 from tsr_sim.units import DEFAULT_MASS, PAPER_ORBIT_RATE, PAPER_TETHER_LENGTH, Scale
 
 #: State and command: reliable, so lockstep never loses a step; shallow, so no backlog builds.
@@ -68,25 +69,6 @@ def spin_until_quiet(executor, progress, quiet=0.3, limit=10.0):
             last, last_change = progress(), time.monotonic()
 
 
-def params_file_problem(argv):
-    """What is wrong with the first `--params-file` of `argv` that cannot be read as a YAML
-    mapping (None if each can); rcl checks the rest."""
-    import yaml
-    for flag, path in zip(argv, argv[1:]):
-        if flag != '--params-file':
-            continue
-        try:
-            with open(path) as stream:
-                document = yaml.safe_load(stream)
-        except OSError as error:
-            return f'--params-file {path}: {error.strerror}'
-        except (UnicodeDecodeError, yaml.YAMLError):
-            return f'--params-file {path}: not a YAML file'
-        if not isinstance(document, dict):
-            return f'--params-file {path}: not a parameter file (<node>: ros__parameters: ...)'
-    return None
-
-
 def run_node(make_node, on_exit=None, args=None, drain=None):
     """The node life cycle every node of the project shares (Jazzy).
 
@@ -97,20 +79,21 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     handed over (the recorder's bag then holds every message acknowledged before the stop).
     Then `on_exit(node)` and clean-up; exit code 0. A node whose `done` attribute a callback
     sets ends the run the same way (an exception out of a callback would be logged as fatal).
-    A bad parameter (out of range, wrong type, invalid value) or model while constructing is
-    one clear line on stderr and exit code 2.
+    A bad parameter (out of range, wrong type, invalid value) or model while constructing, or
+    a --params-file that cannot be read (`parameter_file.params_file_problem`, checked before
+    rcl would log its own [ERROR] line), is one clear line on stderr and exit code 2.
     """
     from rclpy.experimental import EventsExecutor
     from rclpy.impl.implementation_singleton import rclpy_implementation
     from rclpy.signals import SignalHandlerOptions
     RCLError = rclpy_implementation.RCLError
     problem = params_file_problem(sys.argv if args is None else args)
-    if problem:     # said before rcl, which would log its own [ERROR] line first
+    if problem:
         print(f'cannot start: {problem}', file=sys.stderr, flush=True)
         return 2
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    except RCLError as err:     # e.g. --params-file that is missing or not YAML
+    except RCLError as err:     # e.g. a --params-file rcl cannot parse
         print(f'cannot start: {(str(err).splitlines() or [repr(err)])[0]}', file=sys.stderr,
               flush=True)
         return 2

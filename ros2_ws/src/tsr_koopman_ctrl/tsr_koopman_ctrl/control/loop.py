@@ -21,7 +21,7 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     commanded tensions (k,), k = steps unless the state would leave the domain: then the loop
     halts there, as the simulator does, and k < steps.
 
-    `plant`: simulator parameters making the true plant differ from the model (a mapping, e.g.
+    `plant`: plant parameters making the true plant differ from the model (a mapping, e.g.
     `tsr_sim.plant.plant_parameters('actuator_weak')`, with `mass`, `orbit_rate`,
     `tether_length` for its units); `scale`: the units the controller converts with (default:
     the paper's, `Scale()`); `excitation`: a `control.excitation.Excitation` added to the law's

@@ -55,7 +55,8 @@ def parse_args(argv):
     parser.add_argument('--plant', default='nominal',
                         help='plant variant: a name under tsr_sim/config/plants (actuator_weak, '
                         'actuator_strong, heavy_robot, out_of_plane, eccentric_orbit, '
-                        'noisy_sensors) or a YAML file of simulator parameters')
+                        'noisy_sensors) or a YAML file of plant parameters (tsr_sim.plant.'
+                        'PLANT_FILE_PARAMETERS)')
     parser.add_argument('--steps', type=cli.STEPS, default=2000,
                         help='simulation steps of h = 0.01 tau (paper: 2000)')
     parser.add_argument('--x0', type=float, nargs=4, default=dynamics.PAPER_INITIAL_STATE,

@@ -272,6 +272,7 @@ def run_scorings(scorings, jobs):
     (the report of a slow law is minutes: koopman_nmpc's 22 on one core)."""
     from concurrent.futures import as_completed, ProcessPoolExecutor
     import multiprocessing
+    jobs = min(jobs, len(scorings))
     print(f'scoring the default and the best settings on the tuning and the held-out starts '
           f'({len(scorings)} scorings, {jobs} process(es))', flush=True)
     results = {}
@@ -281,12 +282,15 @@ def run_scorings(scorings, jobs):
             print(f'  {key}: {results[key][0]:.3f} ({len(results)}/{len(scorings)})', flush=True)
         return results
     # spawn: a forked child would inherit the parent's torch and Optuna state mid-use
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn')) as pool:
+    pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn'))
+    try:
         futures = {pool.submit(score, *arguments): key for key, arguments in scorings.items()}
         for future in as_completed(futures):
             results[futures[future]] = future.result()
             print(f'  {futures[future]}: {future.result()[0]:.3f} '
                   f'({len(results)}/{len(scorings)})', flush=True)
+    finally:    # on an error, the scorings not yet started do not start
+        pool.shutdown(cancel_futures=True)
     return {key: results[key] for key in scorings}     # the report's order
 
 
@@ -342,7 +346,8 @@ def parser():
     p.add_argument('--law', required=True, choices=sorted(CONTROLLERS))
     p.add_argument('--trials', type=cli.integer(1), default=60,
                    help='finished trials in the study')
-    p.add_argument('--jobs', type=cli.integer(1), default=1, help='worker processes on the study')
+    p.add_argument('--jobs', type=cli.integer(1), default=1,
+                   help='worker processes on the study (and for its final report)')
     p.add_argument('--storage', help='journal file or database URL '
                    '(default: <out>/<study>.journal)')
     p.add_argument('--study', help='study name (default: <law>[_<fixed settings>]'
