@@ -106,6 +106,30 @@ def test_a_node_failing_at_start_is_reported_with_its_log(tmp_path, domain_id, c
     assert 'cannot start:' in out and 'Parameter substeps out of range' in out
 
 
+def test_a_node_failing_beside_the_simulator_is_reported_with_its_log_tail(
+        tmp_path, domain_id):
+    """deploy's watch, on real processes: a recorder that cannot start (deploy itself checks
+    what it passes, so this is the path of an unexpected failure) stops the wait with the last
+    lines of its log, while the simulator still waits for its subscribers."""
+    from tsr_koopman_ctrl.tools.launcher import NodeProcess
+    sim = NodeProcess('tsr_sim', 'sim_node', 'tsr_sim', {'wait_for_subscribers': 2},
+                      domain_id=domain_id, log_path=str(tmp_path / 'sim.log'))
+    recorder = NodeProcess('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
+                           {'output_dir': str(tmp_path), 'topics': ['state'],
+                            'types': ['tsr_msgs/msg/NoSuchType']},
+                           domain_id=domain_id, log_path=str(tmp_path / 'recorder.log'))
+    try:
+        with pytest.raises(RuntimeError) as failed:
+            deploy.watch(sim, (recorder,), timeout=60.0)
+    finally:
+        sim.stop()
+        recorder.stop()
+    report = str(failed.value)
+    assert report.startswith('tsr_recorder exited early\n--- tsr_recorder exited with 2; '
+                             f'last lines of {tmp_path}/recorder.log:\ncannot start: ')
+    assert 'NoSuchType' in report
+
+
 def test_excitation_and_run_info_are_recorded(tmp_path, domain_id):
     """The bag says what ran (both nodes' RunInfo) and what the controller added, and the
     commands are the law's plus exactly that excitation."""
