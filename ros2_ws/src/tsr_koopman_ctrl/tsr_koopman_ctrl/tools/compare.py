@@ -43,10 +43,10 @@ def run(law, settings, start, steps):
     return row, (np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions)
 
 
-#: Laws whose defaults were not set by tuning (the NMPC's are hand-picked; it is tuned only for
-#: the 'tuned_ratio' preset; koopman_nmpc takes the NMPC's: its ratio search, ~0.13 s a step,
-#: is under way in docs/tuning/koopman_nmpc): where a preset does not name them, their
-#: defaults appear once, as 'defaults'.
+#: Laws whose defaults were not set by tuning (the NMPC's are hand-picked; koopman_nmpc takes
+#: them; both are tuned only for the 'tuned_ratio' preset, koopman_nmpc's search at ~0.13 s a
+#: step in docs/tuning/koopman_nmpc): where a preset does not name them, their defaults appear
+#: once, as 'defaults'.
 NOT_TUNED = {'physics_nmpc', 'koopman_nmpc'}
 
 
