@@ -269,7 +269,8 @@ def run_workers(args, argv):
 
 def run_scorings(scorings, jobs):
     """{key: score(*arguments)} for {key: arguments}, in `jobs` processes, a line as each ends
-    (the report of a slow law is minutes: koopman_nmpc's 22 on one core)."""
+    (the report of a slow law is minutes: koopman_nmpc's took 22 on one core and 21 in two
+    processes, each running slower than a trial does, not yet understood)."""
     from concurrent.futures import as_completed, ProcessPoolExecutor
     import multiprocessing
     jobs = min(jobs, len(scorings))
