@@ -5,6 +5,14 @@ import pytest
 from tsr_sim.parameter_file import node_parameters, params_file_problem
 
 
+def write(path, content):
+    """Bytes or text at `path`; None: leave it missing."""
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is not None:
+        path.write_text(content)
+
+
 def test_the_one_node_section_s_parameters(tmp_path):
     path = tmp_path / 'p.yaml'
     path.write_text('/**:\n  ros__parameters:\n    mode: lockstep\n    rate_hz: 50.0\n')
@@ -22,10 +30,7 @@ def test_the_one_node_section_s_parameters(tmp_path):
     (None, 'No such file or directory')])
 def test_anything_else_is_one_line_naming_the_file(tmp_path, content, message):
     path = tmp_path / 'p.yaml'
-    if isinstance(content, bytes):
-        path.write_bytes(content)
-    elif content is not None:
-        path.write_text(content)
+    write(path, content)
     with pytest.raises(ValueError) as error:
         node_parameters(path)
     assert str(error.value).startswith(f'{path}: ') and message in str(error.value)
@@ -41,10 +46,7 @@ def test_anything_else_is_one_line_naming_the_file(tmp_path, content, message):
     ('a:\n  ros__parameters: {x: 1}\n---\nb:\n  ros__parameters: {y: 2}\n', None)])
 def test_a_params_file_is_checked_before_rcl_logs_its_own_error(tmp_path, content, problem):
     path = tmp_path / 'params.yaml'
-    if isinstance(content, bytes):
-        path.write_bytes(content)
-    elif content is not None:
-        path.write_text(content)
+    write(path, content)
     found = params_file_problem(['sim_node', '--ros-args', '--params-file', str(path)])
     assert found == (problem and f'--params-file {path}: {problem}')
 

@@ -143,9 +143,7 @@ def config_from_parameters(values, scale=None):
     the rest), the units (`orbit_rate`, `tether_length`, `mass`: the true plant's, else those of
     `scale`, else the paper's), `max_tension` [N] (default u = TENSION_LIMIT at those units),
     and `plant` (the variant's name, not part of the config)."""
-    unknown = set(values) - set(PLANT_FILE_PARAMETERS)
-    if unknown:
-        raise ValueError(f'unknown plant parameters {sorted(unknown, key=str)}')
+    check_plant_parameter_names(values, 'plant parameters')
     scale = scale or Scale()
     scale = Scale(**{name: values.get(name, getattr(scale, name)) for name in SCALE_PARAMETERS})
     v = {name: values.get(name, spec[0]) for name, spec in PLANT_PARAMETERS.items()}
