@@ -61,12 +61,14 @@ def tiny_model(small_data, tmp_path_factory):
 
 @pytest.fixture(scope='session')
 def domain_id():
-    """A DDS domain of our own: ROS_DOMAIN_ID when the caller set one, else one derived from
-    the process id, so parallel runs and other ROS graphs do not interfere."""
+    """A DDS domain of our own: ROS_DOMAIN_ID when the caller set one, else one of the
+    launcher's free domains (1..101) derived from the process id, so parallel runs and other
+    ROS graphs do not interfere."""
+    from tsr_koopman_ctrl.tools.launcher import FREE_DOMAIN_IDS
     for name in ('ROS_DOMAIN_ID', 'TSR_TEST_DOMAIN'):
         if os.environ.get(name):
             return int(os.environ[name])
-    return 100 + os.getpid() % 100
+    return FREE_DOMAIN_IDS[os.getpid() % len(FREE_DOMAIN_IDS)]
 
 
 @pytest.fixture

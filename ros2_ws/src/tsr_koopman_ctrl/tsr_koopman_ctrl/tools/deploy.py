@@ -15,7 +15,6 @@ from every comparison start (README).
 import argparse
 import datetime
 import os
-import random
 import sys
 import time
 
@@ -33,7 +32,7 @@ from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
 from tsr_koopman_ctrl.model import LiftedModel
 from tsr_koopman_ctrl.tools import cli
-from tsr_koopman_ctrl.tools.launcher import NodeProcess
+from tsr_koopman_ctrl.tools.launcher import NodeProcess, random_domain_id
 from tsr_koopman_ctrl.tools.report import write_report
 
 
@@ -71,7 +70,8 @@ def parse_args(argv):
                         help='directory the bag is written in')
     parser.add_argument('--namespace', default=None, help='ROS namespace of the three nodes')
     parser.add_argument('--domain', type=cli.DOMAIN_ID, default=None,
-                        help='ROS_DOMAIN_ID (default: a random one in 120..219)')
+                        help='ROS_DOMAIN_ID (default: a random one in 1..101, not the '
+                             'environment\'s ROS_DOMAIN_ID)')
     parser.add_argument('--timeout', type=cli.number(above=0), default=900.0,
                         help='wall seconds before the run is abandoned')
     args = parser.parse_args(argv)
@@ -151,7 +151,7 @@ def run(args, controller, x0, run_dir, name):
     if os.path.abspath(args.out) == os.path.abspath(args.bags):
         raise ValueError('--out and --bags must differ: a bag directory holds only the bag')
     os.makedirs(run_dir, exist_ok=True)
-    domain = args.domain if args.domain is not None else random.randint(120, 219)
+    domain = args.domain if args.domain is not None else random_domain_id()
     print(f'[deploy] {controller} from x0 = {[float(v) for v in x0]} for {args.steps} steps '
           f'(tau {args.steps * dynamics.PAPER_STEP:g}), plant {args.plant}, on ROS_DOMAIN_ID '
           f'{domain}', flush=True)

@@ -6,6 +6,7 @@ Used by the main job, the comparison runs and the integration tests.
 """
 
 import os
+import random
 import signal
 import subprocess
 import tempfile
@@ -27,6 +28,20 @@ def write_params(node_name, params, directory):
     with open(path, 'w') as f:
         yaml.safe_dump({'/**': {'ros__parameters': params}}, f)
     return path
+
+
+#: The domains a run picks when none is given. DDS's ports for domain d start at 7400 + 250 d;
+#: past 101 they reach Linux's ephemeral range (32768..60999), where the kernel hands ports to
+#: client sockets, so a participant could find its port taken (the ROS 2 docs, "The
+#: ROS_DOMAIN_ID", advise 0..101). 0 is every ROS graph's default, so it is left out too.
+FREE_DOMAIN_IDS = range(1, 102)
+
+
+def random_domain_id(rng=random):
+    """A domain of its own for a run: one of FREE_DOMAIN_IDS, not the caller's ROS_DOMAIN_ID
+    (a graph the user may be running)."""
+    taken = os.environ.get('ROS_DOMAIN_ID', '').strip()
+    return rng.choice([d for d in FREE_DOMAIN_IDS if str(d) != taken])
 
 
 class NodeProcess:

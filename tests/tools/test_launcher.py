@@ -1,0 +1,34 @@
+"""The launcher's choice of a DDS domain for a run (ROS-free)."""
+
+import random
+
+from tsr_koopman_ctrl.tools.launcher import FREE_DOMAIN_IDS, random_domain_id
+
+#: Linux's default ephemeral port range starts here (/proc/sys/net/ipv4/ip_local_port_range).
+EPHEMERAL_START = 32768
+
+
+def rtps_ports(domain, participants):
+    """The UDP ports a DDS participant binds in `domain` (DDSI-RTPS 2.5, 9.6.1.1: port base
+    7400, domain gain 250, participant gain 2, offsets 0 and 1 multicast, 10 and 11 unicast)."""
+    base = 7400 + 250 * domain
+    multicast = [base, base + 1]
+    unicast = [base + offset + 2 * p for p in range(participants) for offset in (10, 11)]
+    return multicast + unicast
+
+
+def test_a_drawn_domain_keeps_every_port_below_the_ephemeral_range():
+    # 50 participants a host: a deployment has three, an integration test a handful more.
+    worst = max(max(rtps_ports(d, 50)) for d in FREE_DOMAIN_IDS)
+    assert worst < EPHEMERAL_START
+    rng = random.Random(0)
+    drawn = {random_domain_id(rng) for _ in range(2000)}
+    assert drawn == set(FREE_DOMAIN_IDS)
+
+
+def test_a_drawn_domain_is_never_the_callers_own(monkeypatch):
+    monkeypatch.setenv('ROS_DOMAIN_ID', '42')
+    rng = random.Random(1)
+    drawn = {random_domain_id(rng) for _ in range(2000)}
+    assert 42 not in drawn and 0 not in drawn
+    assert drawn == set(FREE_DOMAIN_IDS) - {42}
