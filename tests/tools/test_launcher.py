@@ -1,6 +1,8 @@
-"""The launcher's choice of a DDS domain for a run (ROS-free)."""
+"""The launcher: the DDS domain a run picks, the environment of the processes it starts."""
 
 import random
+
+import pytest
 
 from tsr_koopman_ctrl.tools.launcher import FREE_DOMAIN_IDS, random_domain_id
 
@@ -32,3 +34,28 @@ def test_a_drawn_domain_is_never_the_callers_own(monkeypatch):
     drawn = {random_domain_id(rng) for _ in range(2000)}
     assert 42 not in drawn and 0 not in drawn
     assert drawn == set(FREE_DOMAIN_IDS) - {42}
+
+
+def test_a_started_process_runs_one_blas_thread_unless_the_caller_chose(monkeypatch):
+    import json
+    import subprocess
+    import sys
+    pytest.importorskip('threadpoolctl')
+    from tsr_koopman_ctrl.tools.launcher import child_environment
+    probe = ('import json, numpy\nfrom threadpoolctl import threadpool_info\n'
+             'print(json.dumps([p["num_threads"] for p in threadpool_info()'
+             ' if p["user_api"] == "blas"]))')
+
+    def blas_threads(environment):
+        out = subprocess.run([sys.executable, '-c', probe], env=environment, check=True,
+                             capture_output=True, text=True).stdout
+        return json.loads(out)
+
+    for name in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+        monkeypatch.delenv(name, raising=False)
+    assert blas_threads(child_environment()) == [1]
+    assert child_environment({'X_EXTRA': 'y'})['X_EXTRA'] == 'y'
+    monkeypatch.setenv('OPENBLAS_NUM_THREADS', '2')     # the caller's choice stands
+    assert child_environment()['OPENBLAS_NUM_THREADS'] == '2'
+    assert 'OMP_NUM_THREADS' not in child_environment()
+    assert blas_threads(child_environment()) == [2]

@@ -44,6 +44,21 @@ def random_domain_id(rng=random):
     return rng.choice([d for d in FREE_DOMAIN_IDS if str(d) != taken])
 
 
+#: One BLAS / OpenMP thread for every process a tool starts, unless the caller chose: processes
+#: on this project's few cores each spinning several OpenBLAS threads stall one another. Two
+#: `koopman_nmpc` loops side by side ran 0.93 s a step with numpy's default threads against
+#: 0.18 with one (one alone: 0.17 and 0.15; 2 cores, 2026-12-02).
+ONE_THREAD = {'OMP_NUM_THREADS': '1', 'OPENBLAS_NUM_THREADS': '1', 'MKL_NUM_THREADS': '1'}
+
+
+def child_environment(extra=None):
+    """os.environ with ONE_THREAD where the caller set none of its variables, plus `extra`."""
+    environment = dict(os.environ)
+    if not any(name in environment for name in ONE_THREAD):
+        environment.update(ONE_THREAD)
+    return dict(environment, **(extra or {}))
+
+
 class NodeProcess:
     """One node in its own process; stop() sends SIGINT, then SIGKILL after a grace period."""
 
@@ -58,7 +73,7 @@ class NodeProcess:
         if params:
             cmd += ['--params-file', write_params(node_name, params, self._tmp.name)]
         cmd += list(extra_args)
-        environment = dict(os.environ, **(env or {}))   # env: extra variables
+        environment = child_environment(env)   # env: extra variables
         if domain_id is not None:
             environment['ROS_DOMAIN_ID'] = str(domain_id)
         self._log = open(log_path, 'w') if log_path else None   # None: this console

@@ -46,6 +46,7 @@ from tsr_koopman_ctrl.control.settings import fields, parse_value
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS, HELD_OUT_STARTS
 from tsr_koopman_ctrl.evaluation.starts import SWING_TUNING_STARTS
 from tsr_koopman_ctrl.tools import cli
+from tsr_koopman_ctrl.tools.launcher import child_environment
 from tsr_koopman_ctrl.tools.report import write_results
 
 #: Score of a start that does not settle, halts or swings too far: twice the 20-tau run.
@@ -254,7 +255,8 @@ def run_workers(args, argv):
         # checked for an empty study itself could find its sibling's first trial there.
         study.enqueue_trial(as_params(args.law, {}, args.fixed, args.also))
     procs = [subprocess.Popen([sys.executable, '-m', 'tsr_koopman_ctrl.tools.tune', *argv,
-                               '--worker', str(i)]) for i in range(args.jobs)]
+                               '--worker', str(i)], env=child_environment())
+             for i in range(args.jobs)]
     with tqdm(total=args.trials, desc=study_name(args), unit='trial', file=sys.stdout) as bar:
         while any(p.poll() is None for p in procs):
             bar.n = min(finished(study), args.trials)
@@ -270,7 +272,7 @@ def run_workers(args, argv):
 def run_scorings(scorings, jobs):
     """{key: score(*arguments)} for {key: arguments}, in `jobs` processes, a line as each ends
     (the report of a slow law is minutes: koopman_nmpc's took 22 on one core and 21 in two
-    processes, each running slower than a trial does, not yet understood)."""
+    processes, when each child ran numpy's default BLAS threads: see launcher.ONE_THREAD)."""
     from concurrent.futures import as_completed, ProcessPoolExecutor
     import multiprocessing
     jobs = min(jobs, len(scorings))
@@ -282,7 +284,9 @@ def run_scorings(scorings, jobs):
             results[key] = score(*arguments)
             print(f'  {key}: {results[key][0]:.3f} ({len(results)}/{len(scorings)})', flush=True)
         return results
-    # spawn: a forked child would inherit the parent's torch and Optuna state mid-use
+    # spawn: a forked child would inherit the parent's torch and Optuna state mid-use. A
+    # spawned child takes os.environ as it is when it starts: one BLAS thread each.
+    os.environ.update(child_environment())
     pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn'))
     try:
         futures = {pool.submit(score, *arguments): key for key, arguments in scorings.items()}
