@@ -122,3 +122,20 @@ def test_the_cross_term_preset_holds_each_law_s_best_search():
                 assert values[setting] == value
             else:   # the file holds 4 significant digits
                 assert values[setting] == pytest.approx(value, rel=5e-4), (law, setting)
+
+
+def test_the_committed_comparison_is_what_the_command_runs_by_default():
+    """docs/comparison holds every law but the slow koopman_nmpc, which has its own folders
+    (700 steps), under the default presets: the README's command without options."""
+    import pathlib
+    docs = pathlib.Path(__file__).resolve().parents[2] / 'docs' / 'comparison'
+    rows = json.loads((docs / 'comparison.json').read_text())
+    defaults = compare.parser().parse_args([])
+    assert 'koopman_nmpc' not in defaults.laws
+    assert sorted({r['law'] for r in rows}) == sorted(defaults.laws)
+    assert {r['preset'] for r in rows} == set(defaults.presets) | {'defaults'}
+    assert {r['law'] for r in rows if r['preset'] == 'defaults'} == compare.NOT_TUNED - {
+        'koopman_nmpc'}
+    for folder in ('koopman_nmpc', 'koopman_nmpc_tuned_ratio'):
+        nmpc = json.loads((docs / folder / 'comparison.json').read_text())
+        assert {r['law'] for r in nmpc} == {'koopman_nmpc'} and len(nmpc) == 9
