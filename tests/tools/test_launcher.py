@@ -1,5 +1,6 @@
 """The launcher: the DDS domain a run picks, the environment of the processes it starts."""
 
+import os
 import random
 
 import pytest
@@ -19,7 +20,8 @@ def rtps_ports(domain, participants):
     return multicast + unicast
 
 
-def test_a_drawn_domain_keeps_every_port_below_the_ephemeral_range():
+def test_a_drawn_domain_keeps_every_port_below_the_ephemeral_range(monkeypatch):
+    monkeypatch.delenv('ROS_DOMAIN_ID', raising=False)
     # 50 participants a host: a deployment has three, an integration test a handful more.
     worst = max(max(rtps_ports(d, 50)) for d in FREE_DOMAIN_IDS)
     assert worst < EPHEMERAL_START
@@ -29,11 +31,14 @@ def test_a_drawn_domain_keeps_every_port_below_the_ephemeral_range():
 
 
 def test_a_drawn_domain_is_never_the_callers_own(monkeypatch):
-    monkeypatch.setenv('ROS_DOMAIN_ID', '42')
-    rng = random.Random(1)
-    drawn = {random_domain_id(rng) for _ in range(2000)}
-    assert 42 not in drawn and 0 not in drawn
-    assert drawn == set(FREE_DOMAIN_IDS) - {42}
+    for written in ('42', '042', ' 42 '):
+        monkeypatch.setenv('ROS_DOMAIN_ID', written)
+        rng = random.Random(1)
+        drawn = {random_domain_id(rng) for _ in range(2000)}
+        assert drawn == set(FREE_DOMAIN_IDS) - {42}
+    monkeypatch.setenv('ROS_DOMAIN_ID', 'not a number')     # rcl would refuse it; 0 is out
+    rng = random.Random(2)
+    assert {random_domain_id(rng) for _ in range(2000)} == set(FREE_DOMAIN_IDS)
 
 
 def test_a_started_process_runs_one_blas_thread_unless_the_caller_chose(monkeypatch):
@@ -54,8 +59,27 @@ def test_a_started_process_runs_one_blas_thread_unless_the_caller_chose(monkeypa
     for name in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
         monkeypatch.delenv(name, raising=False)
     assert blas_threads(child_environment()) == [1]
+    if os.cpu_count() >= 2:     # numpy's own default: a thread per core (OpenBLAS caps there)
+        assert blas_threads(dict(os.environ)) == [os.cpu_count()]
     assert child_environment({'X_EXTRA': 'y'})['X_EXTRA'] == 'y'
     monkeypatch.setenv('OPENBLAS_NUM_THREADS', '2')     # the caller's choice stands
     assert child_environment()['OPENBLAS_NUM_THREADS'] == '2'
     assert 'OMP_NUM_THREADS' not in child_environment()
-    assert blas_threads(child_environment()) == [2]
+    if os.cpu_count() >= 2:
+        assert blas_threads(child_environment()) == [2]
+
+
+def test_one_thread_children_leaves_the_callers_environment_as_it_was(monkeypatch):
+    from tsr_koopman_ctrl.tools.launcher import one_thread_children
+    monkeypatch.delenv('OMP_NUM_THREADS', raising=False)
+    monkeypatch.delenv('MKL_NUM_THREADS', raising=False)
+    monkeypatch.delenv('OPENBLAS_NUM_THREADS', raising=False)
+    before = dict(os.environ)
+    with one_thread_children():
+        assert os.environ['OPENBLAS_NUM_THREADS'] == '1' and os.environ['OMP_NUM_THREADS'] == '1'
+    assert dict(os.environ) == before
+    monkeypatch.setenv('OMP_NUM_THREADS', '3')     # the caller's choice: nothing added
+    before = dict(os.environ)
+    with one_thread_children():
+        assert dict(os.environ) == before
+    assert dict(os.environ) == before

@@ -77,8 +77,8 @@ class KoopmanLqr(Law):
         phi(x) the observables less their linear part at the target (psi_x(x) - z_d =
         [x; D x + phi(x)], D = `LiftedModel.lift_jacobian`'s observable rows). K_x alone is the
         gain near the target; K_phi phi(x) is what the lift adds away from it, a feedforward on
-        observables the model predicts to decay on their own (README, *Why the fast
-        observables*)."""
+        observables the model predicts to decay on their own (docs/comparison/README.md,
+        *Why the fast observables fix it*)."""
         n = self.model.n
         jacobian = self.model.lift_jacobian(eps=eps)[n:]
         return self.gain[:n] + self.gain[n:] @ jacobian, self.gain[n:].copy()

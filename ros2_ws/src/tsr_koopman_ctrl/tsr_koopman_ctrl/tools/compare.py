@@ -49,8 +49,9 @@ def run(law, settings, start, steps):
 #: once, as 'defaults'.
 NOT_TUNED = {'physics_nmpc', 'koopman_nmpc'}
 
-#: Laws left out unless named: koopman_nmpc takes ~0.15 s a step here, 45 min a preset at the
-#: 2000 steps the others run; it settles within 3.4 tau, so it runs on its own with --steps 700.
+#: Laws left out unless named: koopman_nmpc takes 0.13..0.17 s a step here, ~50 min a preset
+#: at the 2000 steps the others run; it settles within 3.4 tau, so it runs on its own with
+#: --steps 700.
 SLOW_LAWS = {'koopman_nmpc'}
 
 

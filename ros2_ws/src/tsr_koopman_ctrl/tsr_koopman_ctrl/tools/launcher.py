@@ -5,6 +5,7 @@ looks on a stock install, writes the parameters to a YAML `--params-file` and ma
 Used by the main job, the comparison runs and the integration tests.
 """
 
+import contextlib
 import os
 import random
 import signal
@@ -40,8 +41,11 @@ FREE_DOMAIN_IDS = range(1, 102)
 def random_domain_id(rng=random):
     """A domain of its own for a run: one of FREE_DOMAIN_IDS, not the caller's ROS_DOMAIN_ID
     (a graph the user may be running)."""
-    taken = os.environ.get('ROS_DOMAIN_ID', '').strip()
-    return rng.choice([d for d in FREE_DOMAIN_IDS if str(d) != taken])
+    try:
+        taken = int(os.environ.get('ROS_DOMAIN_ID', ''))
+    except ValueError:      # unset, empty or not a number: rcl's default, 0, which is left out
+        taken = None
+    return rng.choice([d for d in FREE_DOMAIN_IDS if d != taken])
 
 
 #: One BLAS / OpenMP thread for every process a tool starts, unless the caller chose: processes
@@ -57,6 +61,20 @@ def child_environment(extra=None):
     if not any(name in environment for name in ONE_THREAD):
         environment.update(ONE_THREAD)
     return dict(environment, **(extra or {}))
+
+
+@contextlib.contextmanager
+def one_thread_children():
+    """Within: os.environ with ONE_THREAD as child_environment() adds it, for children that
+    take os.environ as it is when they start (a spawn pool); the caller's variables after."""
+    added = {name: value for name, value in child_environment().items()
+             if name not in os.environ}
+    os.environ.update(added)
+    try:
+        yield
+    finally:
+        for name in added:
+            os.environ.pop(name, None)
 
 
 class NodeProcess:

@@ -46,7 +46,7 @@ from tsr_koopman_ctrl.control.settings import fields, parse_value
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS, HELD_OUT_STARTS
 from tsr_koopman_ctrl.evaluation.starts import SWING_TUNING_STARTS
 from tsr_koopman_ctrl.tools import cli
-from tsr_koopman_ctrl.tools.launcher import child_environment
+from tsr_koopman_ctrl.tools.launcher import child_environment, one_thread_children
 from tsr_koopman_ctrl.tools.report import write_results
 
 #: Score of a start that does not settle, halts or swings too far: twice the 20-tau run.
@@ -272,7 +272,8 @@ def run_workers(args, argv):
 def run_scorings(scorings, jobs):
     """{key: score(*arguments)} for {key: arguments}, in `jobs` processes, a line as each ends
     (the report of a slow law is minutes: koopman_nmpc's took 22 on one core and 21 in two
-    processes, when each child ran numpy's default BLAS threads: see launcher.ONE_THREAD)."""
+    processes; why two were no faster is not known. Each child runs one BLAS
+    thread, launcher.ONE_THREAD: with numpy's default, processes side by side stall)."""
     from concurrent.futures import as_completed, ProcessPoolExecutor
     import multiprocessing
     jobs = min(jobs, len(scorings))
@@ -284,18 +285,18 @@ def run_scorings(scorings, jobs):
             results[key] = score(*arguments)
             print(f'  {key}: {results[key][0]:.3f} ({len(results)}/{len(scorings)})', flush=True)
         return results
-    # spawn: a forked child would inherit the parent's torch and Optuna state mid-use. A
-    # spawned child takes os.environ as it is when it starts: one BLAS thread each.
-    os.environ.update(child_environment())
-    pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn'))
-    try:
-        futures = {pool.submit(score, *arguments): key for key, arguments in scorings.items()}
-        for future in as_completed(futures):
-            results[futures[future]] = future.result()
-            print(f'  {futures[future]}: {future.result()[0]:.3f} '
-                  f'({len(results)}/{len(scorings)})', flush=True)
-    finally:    # on an error, the scorings not yet started do not start
-        pool.shutdown(cancel_futures=True)
+    # spawn: a forked child would inherit the parent's torch and Optuna state mid-use.
+    with one_thread_children():
+        pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn'))
+        try:
+            futures = {pool.submit(score, *arguments): key
+                       for key, arguments in scorings.items()}
+            for future in as_completed(futures):
+                results[futures[future]] = future.result()
+                print(f'  {futures[future]}: {future.result()[0]:.3f} '
+                      f'({len(results)}/{len(scorings)})', flush=True)
+        finally:    # on an error, the scorings not yet started do not start
+            pool.shutdown(cancel_futures=True)
     return {key: results[key] for key in scorings}     # the report's order
 
 
