@@ -136,6 +136,7 @@ def test_the_committed_comparison_is_what_the_command_runs_by_default():
     assert {r['preset'] for r in rows} == set(defaults.presets) | {'defaults'}
     assert {r['law'] for r in rows if r['preset'] == 'defaults'} == compare.NOT_TUNED - {
         'koopman_nmpc'}
-    for folder in ('koopman_nmpc', 'koopman_nmpc_tuned_ratio'):
+    for folder in ('koopman_nmpc', 'koopman_nmpc_tuned_ratio', 'koopman_nmpc_swing0.4',
+                   'koopman_nmpc_tuned_ratio_swing0.4'):
         nmpc = json.loads((docs / folder / 'comparison.json').read_text())
         assert {r['law'] for r in nmpc} == {'koopman_nmpc'} and len(nmpc) == 9
