@@ -59,8 +59,8 @@ def test_a_started_process_runs_one_blas_thread_unless_the_caller_chose(monkeypa
     for name in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
         monkeypatch.delenv(name, raising=False)
     assert blas_threads(child_environment()) == [1]
-    if os.cpu_count() >= 2:     # numpy's own default: a thread per core (OpenBLAS caps there)
-        assert blas_threads(dict(os.environ)) == [os.cpu_count()]
+    if os.cpu_count() >= 2:     # numpy's own default: a thread per core
+        assert blas_threads(dict(os.environ))[0] > 1
     assert child_environment({'X_EXTRA': 'y'})['X_EXTRA'] == 'y'
     monkeypatch.setenv('OPENBLAS_NUM_THREADS', '2')     # the caller's choice stands
     assert child_environment()['OPENBLAS_NUM_THREADS'] == '2'
