@@ -1,11 +1,10 @@
 """The documentation's relative links lead to files that exist."""
 
-import pathlib
 import re
 
+from conftest import ROOT
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
 #: Markdown links and images: [text](target) and ![alt](target), the target up to ')' or space.
 LINK = re.compile(r'!?\[[^\]]*\]\(([^)\s]+)\)')
 DOCUMENTS = sorted([ROOT / 'README.md', *ROOT.glob('docs/**/*.md'), *ROOT.glob('models/**/*.md'),

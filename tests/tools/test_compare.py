@@ -127,8 +127,8 @@ def test_the_cross_term_preset_holds_each_law_s_best_search():
 def test_the_committed_comparison_is_what_the_command_runs_by_default():
     """docs/comparison holds every law but the slow koopman_nmpc, which has its own folders
     (700 steps), under the default presets: the README's command without options."""
-    import pathlib
-    docs = pathlib.Path(__file__).resolve().parents[2] / 'docs' / 'comparison'
+    from conftest import ROOT
+    docs = ROOT / 'docs' / 'comparison'
     rows = json.loads((docs / 'comparison.json').read_text())
     defaults = compare.parser().parse_args([])
     assert 'koopman_nmpc' not in defaults.laws

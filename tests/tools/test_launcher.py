@@ -5,7 +5,7 @@ import random
 
 import pytest
 
-from tsr_koopman_ctrl.tools.launcher import FREE_DOMAIN_IDS, random_domain_id
+from tsr_koopman_ctrl.tools.launcher import FREE_DOMAIN_IDS, ONE_THREAD, random_domain_id
 
 #: Linux's default ephemeral port range starts here (/proc/sys/net/ipv4/ip_local_port_range).
 EPHEMERAL_START = 32768
@@ -56,7 +56,7 @@ def test_a_started_process_runs_one_blas_thread_unless_the_caller_chose(monkeypa
                              capture_output=True, text=True).stdout
         return json.loads(out)
 
-    for name in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    for name in ONE_THREAD:
         monkeypatch.delenv(name, raising=False)
     assert blas_threads(child_environment()) == [1]
     if os.cpu_count() >= 2:     # numpy's own default: a thread per core
@@ -71,9 +71,8 @@ def test_a_started_process_runs_one_blas_thread_unless_the_caller_chose(monkeypa
 
 def test_one_thread_children_leaves_the_callers_environment_as_it_was(monkeypatch):
     from tsr_koopman_ctrl.tools.launcher import one_thread_children
-    monkeypatch.delenv('OMP_NUM_THREADS', raising=False)
-    monkeypatch.delenv('MKL_NUM_THREADS', raising=False)
-    monkeypatch.delenv('OPENBLAS_NUM_THREADS', raising=False)
+    for name in ONE_THREAD:
+        monkeypatch.delenv(name, raising=False)
     before = dict(os.environ)
     with one_thread_children():
         assert os.environ['OPENBLAS_NUM_THREADS'] == '1' and os.environ['OMP_NUM_THREADS'] == '1'

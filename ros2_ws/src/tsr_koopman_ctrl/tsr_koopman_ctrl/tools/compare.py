@@ -44,9 +44,9 @@ def run(law, settings, start, steps):
 
 
 #: Laws whose defaults were not set by tuning (the NMPC's are hand-picked; koopman_nmpc takes
-#: them; both are tuned only for the 'tuned_ratio' preset, koopman_nmpc's search at ~0.13 s a
-#: step in docs/tuning/koopman_nmpc): where a preset does not name them, their defaults appear
-#: once, as 'defaults'.
+#: them; both are tuned only for the 'tuned_ratio' preset, koopman_nmpc's search in
+#: docs/tuning/koopman_nmpc): where a preset does not name them, their defaults appear once,
+#: as 'defaults'.
 NOT_TUNED = {'physics_nmpc', 'koopman_nmpc'}
 
 #: Laws left out unless named: koopman_nmpc takes 0.13..0.17 s a step here, ~50 min a preset
