@@ -28,11 +28,12 @@ def start_recorder(start_node, tmp_path, **params):
                             'discovery_period': 0.05}, **params))
 
 
-def publish_burst(ros, n):
-    """Publish 0..n-1 as fast as rclpy goes, once the recorder has subscribed."""
+def publish_burst(ros, n, hold=0.0):
+    """Publish 0..n-1 as fast as rclpy goes, `hold` seconds after the recorder subscribed."""
     pub = ros.node.create_publisher(UInt64, TOPIC, BURST_QOS)
     ros.spin_until(lambda: pub.get_subscription_count() > 0, timeout=20,
                    what='the recorder to subscribe')
+    ros.spin_for(hold)
     for i in range(n):
         pub.publish(UInt64(data=i))
     assert pub.wait_for_all_acked(Duration(seconds=30))
@@ -86,18 +87,23 @@ def test_sigkill_after_the_flush_period_loses_nothing(ros, start_node, tmp_path)
 
 def test_a_matched_topic_that_stays_silent_is_logged_once(ros, start_node, tmp_path):
     """The recorder cannot tell a silent publisher from a transport that delivers nothing (Fast
-    DDS shared memory after a kill -9): either way it says so, once, naming the topic."""
+    DDS shared memory after a kill -9): either way it says so, once, naming the topic. Its clock
+    starts when a publisher matches: one that appears late and sends within the time is fine."""
     silent = '/test/silent'
     start_recorder(start_node, tmp_path, topics=[TOPIC, silent],
-                   types=['std_msgs/msg/UInt64'] * 2, silence_warning=1.0)
+                   types=['std_msgs/msg/UInt64'] * 2, silence_warning=2.0)
+    log = tmp_path / 'tsr_recorder.log'
     quiet = ros.node.create_publisher(UInt64, silent, BURST_QOS)
     ros.spin_until(lambda: quiet.get_subscription_count() > 0, timeout=20,
                    what='the recorder to subscribe')
-    publish_burst(ros, 10)                               # the other topic is not silent
-    ros.spin_for(3.0)
-    log = (tmp_path / 'tsr_recorder.log').read_text()
-    assert log.count(f'no message on {silent} for 1 s although 1 publisher(s)') == 1, log
-    assert f'no message on {TOPIC}' not in log
+    ros.spin_for(2.5)              # both subscriptions are now older than the warning time
+    # Matched 1.2 s before its first message: over one 1-s check, under the 2-s warning.
+    publish_burst(ros, 10, hold=1.2)
+    warning = f'no message on {silent} for 2 s although 1 publisher(s)'
+    ros.spin_until(lambda: warning in log.read_text(), timeout=20, what='the silence warning')
+    ros.spin_for(2.5)              # two more checks: it is not repeated
+    assert log.read_text().count(warning) == 1, log.read_text()
+    assert f'no message on {TOPIC}' not in log.read_text()
 
 
 @pytest.mark.parametrize('params, message', [

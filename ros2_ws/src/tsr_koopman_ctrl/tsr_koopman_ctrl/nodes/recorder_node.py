@@ -78,7 +78,7 @@ class RecorderNode(Node):
         if self.writer.flush_period > 0.0:
             self.create_timer(min(0.2, self.writer.flush_period / 2.0), self.writer.flush_if_due)
         self.subscribed = {}
-        self.subscribed_at = {}        # topic -> monotonic time of its subscription
+        self.matched_since = {}        # topic -> monotonic time its publishers were first seen
         self.silence_warned = set()
         self.silence_warning = declare(
             self, 'silence_warning', 5.0, 'seconds: warn once per topic when publishers are '
@@ -125,7 +125,6 @@ class RecorderNode(Node):
             message_class(type_name), topic,
             lambda data, t=topic: self.writer.write(t, data, self.get_clock().now().nanoseconds),
             profile, raw=True)
-        self.subscribed_at[topic] = time.monotonic()
         self.get_logger().info(f'recording {topic} [{type_name}]')
 
     def check_silence(self):
@@ -134,9 +133,15 @@ class RecorderNode(Node):
         after one was killed -9 on this host: README, Reliability)."""
         now = time.monotonic()
         for topic, subscription in self.subscribed.items():
+            if topic in self.silence_warned or self.writer.topic_counts.get(topic):
+                continue
             publishers = subscription.get_publisher_count()
-            if (topic in self.silence_warned or self.writer.topic_counts.get(topic)
-                    or not publishers or now - self.subscribed_at[topic] < self.silence_warning):
+            if not publishers:
+                self.matched_since.pop(topic, None)
+                continue
+            # The clock starts at the match, not the subscription: a publisher that appears
+            # late and sends at once is not silent.
+            if now - self.matched_since.setdefault(topic, now) < self.silence_warning:
                 continue
             self.silence_warned.add(topic)
             self.get_logger().warning(
