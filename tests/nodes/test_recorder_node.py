@@ -28,8 +28,9 @@ def start_recorder(start_node, tmp_path, **params):
                             'discovery_period': 0.05}, **params))
 
 
-def publish_burst(ros, n, hold=0.0):
-    """Publish 0..n-1 as fast as rclpy goes, `hold` seconds after the recorder subscribed."""
+def publish_burst(ros, n, hold=0.0, after=1.0):
+    """Publish 0..n-1 as fast as rclpy goes, `hold` seconds after the recorder subscribed;
+    return `after` seconds after the last was acknowledged."""
     pub = ros.node.create_publisher(UInt64, TOPIC, BURST_QOS)
     ros.spin_until(lambda: pub.get_subscription_count() > 0, timeout=20,
                    what='the recorder to subscribe')
@@ -37,7 +38,7 @@ def publish_burst(ros, n, hold=0.0):
     for i in range(n):
         pub.publish(UInt64(data=i))
     assert pub.wait_for_all_acked(Duration(seconds=30))
-    ros.spin_for(1.0)  # acked means in the recorder's queue: let its callbacks run
+    ros.spin_for(after)  # acked means in the recorder's queue: let its callbacks run
 
 
 def counters_in_bag(path):
@@ -78,7 +79,9 @@ def test_sigkill_leaves_a_recoverable_bag(ros, start_node, tmp_path):
 def test_sigkill_after_the_flush_period_loses_nothing(ros, start_node, tmp_path):
     n = 4000
     recorder = start_recorder(start_node, tmp_path, flush_period=0.5)
-    publish_burst(ros, n)          # ends 1 s after the last message was acknowledged
+    # 2 s after the last acknowledgement: the flush period, its 0.2-s timer and slack for a
+    # loaded machine to take 4000 messages first.
+    publish_burst(ros, n, after=2.0)
     recorder.kill()
     reader = BagReader(str(tmp_path / 'rec'))
     assert [msg.data for _, msg in reader.decoded()] == list(range(n))
