@@ -20,7 +20,12 @@ def test_every_law_has_described_settings():
     ('koopman_mpc', {'terminal': 'stage'}, "koopman_mpc.terminal must be one of"),
     ('linear_lqr', {'q': (1.0, 2.0)}, 'linear_lqr.q needs 4 numbers'),
     ('linear_lqr', {'r': float('nan')}, 'linear_lqr.r must be finite'),
-    ('linear_lqr', {'bogus': 1}, "linear_lqr has no setting 'bogus'")])
+    ('linear_lqr', {'bogus': 1}, "linear_lqr has no setting 'bogus'"),
+    ('koopman_mpc', {'horizon': '5'}, "koopman_mpc.horizon must be an integer, got '5'"),
+    ('koopman_mpc', {'horizon': 5.0}, 'koopman_mpc.horizon must be an integer, got 5.0'),
+    ('linear_lqr', {'r': '1'}, "linear_lqr.r must be a number, got '1'"),
+    ('linear_lqr', {'q': (1.0, True, 1.0, 1.0)}, 'linear_lqr.q must be 4 numbers'),
+    ('physics_nmpc', {'compile': 1}, 'physics_nmpc.compile must be true or false')])
 def test_bad_settings_are_one_line_naming_the_setting(law, overrides, message):
     with pytest.raises(ValueError, match=message.replace('(', r'\(')) as error:
         make_controller(law, **overrides)
@@ -43,3 +48,10 @@ def test_command_line_values_take_the_setting_type():
     assert parse_value(settings, 'terminal', 'riccati') == 'riccati'
     with pytest.raises(ValueError, match="koopman_mpc.horizon: cannot read 'five' as int"):
         parse_value(settings, 'horizon', 'five')
+
+
+@pytest.mark.parametrize('steps', [-5, 2.5, True])
+def test_closed_loop_refuses_a_step_count_that_is_not_a_whole_number(steps):
+    from tsr_koopman_ctrl.control import closed_loop
+    with pytest.raises(ValueError, match='closed_loop: steps must be an integer >= 0'):
+        closed_loop(make_controller('linear_lqr'), [0.0, 0.0, -0.99, 0.5], steps)

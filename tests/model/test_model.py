@@ -134,6 +134,15 @@ def test_a_relifted_prediction_is_the_one_step_map_iterated(tiny_model):
     assert not np.allclose(linear[:, 2:], got[:, 2:])
 
 
+def test_predict_takes_one_start_as_1d_and_names_the_shapes_it_wants(tiny_model):
+    model = lifted.LiftedModel.load(tiny_model[0])
+    x0, u = np.array([0.1, 0.0, -0.5, 0.2]), np.linspace(2.0, 4.0, 5)
+    np.testing.assert_array_equal(model.predict(x0, u), model.predict(x0[None], u[None]))
+    for bad_x0, bad_u in ((np.zeros((2, 4)), u), (np.zeros((1, 3)), u[None])):
+        with pytest.raises(ValueError, match=r'predict takes x0 \(N, 4\) and u \(N, T\), got'):
+            model.predict(bad_x0, bad_u)
+
+
 @pytest.mark.parametrize('activation', ['tanh', 'elu'])
 def test_the_analytic_step_jacobians_match_central_differences(tiny_model, activation):
     """step_jacobians (forward mode through the networks) against central differences of

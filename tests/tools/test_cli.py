@@ -54,8 +54,11 @@ def run_tool(tool, argv):
     ('mpc_sweep', ['--horizons', '0'], 'argument --horizons: 0 must be >= 1'),
     ('tune', ['--law', 'linear_lqr', '--trials', '0'], 'argument --trials: 0 must be >= 1'),
     ('tune', ['--law', 'linear_lqr', '--swing-max', '-1'], '--swing-max: -1 must be > 0'),
+    ('tune', ['--law', 'linear_lqr', '--seed', '-5'], 'argument --seed: -5 must be >= 0'),
     ('train', ['--out', '{text_file}'], 'notes.txt exists and is not a directory'),
     ('train', ['--out', 'm', '--threads', '-1'], 'argument --threads: -1 must be >= 1'),
+    ('train', ['--out', 'm', '--seed', '4294967296'], 'must be <= 4.29497e+09'),
+    ('train', ['--out', 'm', '--resume'], 'cannot resume: no m/checkpoint.pt'),
     ('train', ['--out', 'm', '--device', 'bogus'], "'bogus' is not a torch device"),
     ('train', ['--out', 'm', '--device', 'meta'], "'meta' is not a torch device"),
     ('train', ['--out', 'm', '--device', 'cuda:64'], 'cuda:64: torch sees'),
@@ -89,3 +92,47 @@ def test_loop_refuses_to_mix_a_new_run_into_an_earlier_one(tmp_path, capsys):
     (tmp_path / 'actuator_weak' / 'report.json').write_text('{}')
     assert run_tool('loop', ['--plant', 'actuator_weak', '--out', tmp_path]) == 2
     assert 'actuator_weak holds an earlier loop' in capsys.readouterr().err
+
+
+def params(tmp_path, text):
+    """A parameter file holding `text` under ros__parameters."""
+    path = tmp_path / 'file.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    ' + text.replace('\n', '\n    ') + '\n')
+    return path
+
+
+@pytest.mark.parametrize('tool, option, text, message', [
+    ('deploy', '--preset', 'koopman_mpc: {horizn: 8}', "koopman_mpc has no setting 'horizn'"),
+    ('deploy', '--preset', 'koopman_mpc.horizn: 8', "koopman_mpc has no setting 'horizn'"),
+    ('deploy', '--preset', 'koopman_mcp: {horizon: 8}',
+     "'koopman_mcp' is not a section a preset can hold (excitation, fractional_pd,"),
+    ('deploy', '--preset', 'controller: linear_lqr', "'controller' is not a section a preset"),
+    ('deploy', '--preset', 'koopman_mpc: {horizon: abc}',
+     "koopman_mpc.horizon must be an integer, got 'abc'"),
+    ('deploy', '--preset', 'linear_lqr: {q: [1, 2, x, 4]}', 'linear_lqr.q must be 4 numbers'),
+    ('compare', '--presets', 'koopman_mpc: {horizn: 8}', "koopman_mpc has no setting 'horizn'"),
+    ('compare', '--presets', 'observer: {disturbance: none}',
+     "'observer' is not a section a preset can hold (fractional_pd,"),
+    ('deploy', '--plant', 'mass: -5.0', 'Scale.mass must be a finite number > 0, got -5.0'),
+    ('deploy', '--plant', 'actuator_gain: 200.0', 'actuator_gain must be in [0.001, 100]'),
+    ('deploy', '--plant', 'actuator_lag: fast', 'actuator_lag must be a number'),
+])
+def test_a_bad_preset_or_plant_file_is_one_line_and_status_2(tool, option, text, message,
+                                                             tmp_path, monkeypatch, capsys):
+    """What would otherwise be ignored, a traceback, or a node failing after the others
+    started."""
+    path = params(tmp_path, text)
+    monkeypatch.chdir(tmp_path)
+    assert run_tool(tool, [option, path, '--steps', '10']) == 2
+    err = capsys.readouterr().err
+    assert f'{path}: {message}' in err and 'Traceback' not in err, err
+    assert [p.name for p in tmp_path.iterdir()] == ['file.yaml']
+
+
+def test_a_preset_may_set_the_observer_and_use_dotted_names_for_deploy(tmp_path):
+    from tsr_koopman_ctrl.tools import deploy
+    path = params(tmp_path, 'observer: {disturbance: none}\nkoopman_mpc.horizon: 8\n'
+                  'koopman_mpc.r: 2')
+    args = deploy.parse_args(['--preset', str(path), '--set', 'koopman_mpc.r=3'])
+    assert args.law_settings['observer'] == {'disturbance': 'none'}
+    assert args.law_settings['koopman_mpc'] == {'horizon': 8, 'r': 3.0}    # --set on top

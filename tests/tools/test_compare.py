@@ -45,10 +45,14 @@ def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):
     table = (tmp_path / 'comparison.md').read_text().split('\n\n')[0].splitlines()
     assert '| tuned, \\|theta\\| <= 0.5 |' in table[2]
     assert len({line.replace('\\|', '').count('|') for line in table}) == 1
+    # None of the laws takes one: an error, not an empty table.
+    assert compare.main(['--laws', 'linear_lqr', '--theta-max', '0.4', '--steps', '10',
+                         '--out', str(tmp_path / 'none')]) == 2
+    assert not (tmp_path / 'none').exists()
 
 
 def test_a_law_with_hand_picked_defaults_runs_once_unless_a_preset_names_it(
-        tmp_path, monkeypatch):
+        tmp_path, monkeypatch, capsys):
     # physics_nmpc's role, played by the fast linear_lqr: 'tuned' and a preset without it give
     # its defaults once; a preset that names it ('untuned' here) gives its own rows.
     monkeypatch.setattr(compare, 'NOT_TUNED', {'linear_lqr'})
@@ -61,10 +65,15 @@ def test_a_law_with_hand_picked_defaults_runs_once_unless_a_preset_names_it(
     # ... and the untuned rows ran the untuned settings, not the defaults again.
     assert all(a['swing'] != b['swing'] for a, b in zip(rows[:9], rows[9:]))
     # A preset file that does not name a tuned law leaves it out (rather than running its
-    # defaults under the file's name).
+    # defaults under the file's name); naming none of the laws compared, it is an error, not
+    # an empty table.
+    (tmp_path / 'comparison.json').unlink()
     assert compare.main(['--laws', 'fractional_pd', '--presets', str(without), '--steps', '200',
-                         '--out', str(tmp_path)]) == 0
-    assert json.loads((tmp_path / 'comparison.json').read_text()) == []
+                         '--out', str(tmp_path)]) == 2
+    assert capsys.readouterr().err == (
+        f"compare: --presets {without}: sets none of the laws compared (['fractional_pd']), "
+        "only ['koopman_mpc']\n")
+    assert not (tmp_path / 'comparison.json').exists()
     # A repeated preset runs once.
     assert compare.main(['--laws', 'linear_lqr', '--presets', 'untuned', 'untuned',
                          '--steps', '200', '--out', str(tmp_path)]) == 0

@@ -281,4 +281,27 @@ def plant_parameters(name):
     path = plant_file(name)
     parameters = node_parameters(path)
     check_plant_parameter_names(parameters, path)
+    check_plant_parameter_values(parameters, path)
     return parameters
+
+
+def check_plant_parameter_values(values, source):
+    """ValueError naming `source` for a value the simulator node would refuse at start (out of
+    its declared range, or a plant the config cannot be built from), so a tool can say it
+    before any process starts."""
+    import numbers
+    for name, value in values.items():
+        spec = PLANT_PARAMETERS.get(name) or SIMULATOR_PARAMETERS.get(name)
+        if spec is None:
+            continue
+        _, _, low, high = spec
+        if low is None and high is None:
+            continue
+        if not isinstance(value, numbers.Real) or isinstance(value, bool):
+            raise ValueError(f'{source}: {name} must be a number, got {value!r}')
+        if not low <= value <= high:
+            raise ValueError(f'{source}: {name} must be in [{low:g}, {high:g}], got {value!r}')
+    try:
+        config_from_parameters(values)
+    except (ValueError, TypeError) as error:
+        raise ValueError(f'{source}: {error}') from None

@@ -5,6 +5,7 @@ sensor noise), and the state and the command pass through SI units as on the wir
 deployed here and over DDS in lockstep sees the same numbers.
 """
 
+import numbers
 import time
 
 import numpy as np
@@ -27,6 +28,8 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     the paper's, `Scale()`); `excitation`: a `control.excitation.Excitation` added to the law's
     tension before the clamp, as the controller node adds it (reset here).
     """
+    if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 0:
+        raise ValueError(f'closed_loop: steps must be an integer >= 0, got {steps!r}')
     scale = scale or Scale()
     params = dict(plant or {}, initial_state=[float(v) for v in x0], step=h, substeps=substeps)
     sim = Plant(config_from_parameters(params, scale))

@@ -31,12 +31,16 @@ def make_controller(name, settings=None, observer=None, **overrides):
     return law if observer.disturbance == 'none' else OffsetFree(law, observer)
 
 
-def preset(name):
+def preset(name, sections=None):
     """{law: {setting: value}} of a settings preset: a parameter file (`ros__parameters` with a
-    section per law), given by path or by name under the installed config/ ('untuned': the
-    settings before tuning). The laws' defaults are the tuned settings."""
+    section per law, or `law.setting` keys), given by path or by name under the installed
+    config/ ('untuned': the settings before tuning). The laws' defaults are the tuned settings.
+    `sections`: {name: settings class} of other sections the caller applies too (deploy: the
+    observer and the excitation). Anything else in the file, a setting a law does not have, or
+    a value of the wrong type or range is one ValueError line naming the file."""
     import os
 
+    from tsr_koopman_ctrl.control.settings import build
     from tsr_sim.parameter_file import node_parameters
     from tsr_sim.share import NOT_SOURCED, share_directory
     path = name
@@ -48,10 +52,29 @@ def preset(name):
         if not os.path.isfile(path):
             raise ValueError(f'no settings preset {name!r} (tried {os.path.abspath(name)}, '
                              f'{path})')
-    laws = {law: values for law, values in node_parameters(path).items()
-            if law in CONTROLLERS}
-    for law, values in laws.items():
+    classes = {law: cls.Settings for law, cls in CONTROLLERS.items()}
+    classes.update(sections or {})
+    grouped = {}
+    for key, value in node_parameters(path).items():
+        section, dot, setting = key.partition('.')     # 'law.setting' keys, as ROS takes them
+        values = grouped.setdefault(section, {})
+        if dot:
+            if not isinstance(values, dict):
+                raise ValueError(f'{path}: {section} is not a section of settings')
+            values[setting] = value
+        elif isinstance(value, dict) and isinstance(values, dict):
+            values.update(value)
+        else:
+            grouped[section] = value
+    for section, values in grouped.items():
+        if section not in classes:
+            raise ValueError(f'{path}: {section!r} is not a section a preset can hold '
+                             f"({', '.join(sorted(classes))})")
         if not isinstance(values, dict):
-            raise ValueError(f'{path}: {law} is not a section of settings')
-        law_class(law).Settings(**values)     # checked: one line if a value is out of range
-    return laws
+            raise ValueError(f'{path}: {section} is not a section of settings')
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+        try:
+            build(classes[section], None, values)
+        except ValueError as error:      # one line: a setting it lacks, a type or a range
+            raise ValueError(f'{path}: {error}') from None
+    return grouped

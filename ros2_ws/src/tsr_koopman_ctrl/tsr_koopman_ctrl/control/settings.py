@@ -5,6 +5,7 @@ description and range. The controller node's parameters (``<law>.<field>``), the
 
 import dataclasses
 import math
+import numbers
 
 
 def setting(default, description, low=None, high=None, choices=None, tune=None,
@@ -46,11 +47,37 @@ class LawSettings:
             check_value(type(self), field, value)
 
 
+def _is_number(value):
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _type_fits(default, value):
+    """True if `value` has the type of the setting whose default is `default` (an int where a
+    float is wanted is fine; a string or bool where a number is wanted is not). Strings are not
+    checked: `model` also takes a loaded LiftedModel, and choices are checked apart."""
+    if isinstance(default, bool):
+        return isinstance(value, bool)
+    if isinstance(default, int):
+        return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    if isinstance(default, float):
+        return _is_number(value)
+    if isinstance(default, tuple):
+        return isinstance(value, tuple) and all(_is_number(v) for v in value)
+    return True
+
+
 def check_value(settings_class, field, value):
-    """Raise ValueError (one line naming the setting) if `value` is out of range or not one of
-    the choices."""
+    """Raise ValueError (one line naming the setting) if `value` is of another type than the
+    setting's default, out of range or not one of the choices."""
     meta = field.metadata
     where = f'{law_name(settings_class)}.{field.name}'
+    default = field.default
+    if not _type_fits(default, value):
+        kind = ('true or false' if isinstance(default, bool) else
+                'an integer' if isinstance(default, int) else
+                'a number' if isinstance(default, float) else
+                f'{len(default)} numbers')
+        raise ValueError(f'{where} must be {kind}, got {value!r}')
     if meta.get('choices') and value not in meta['choices']:
         raise ValueError(f'{where} must be one of {list(meta["choices"])}, got {value!r}')
     if meta.get('size') is not None and (not isinstance(value, tuple)

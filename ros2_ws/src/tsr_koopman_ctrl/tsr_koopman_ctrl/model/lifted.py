@@ -215,15 +215,21 @@ class LiftedModel:
         model serves as a one-step map x+ = C (A psi_x(x) + B psi_u(x, u)) instead of a linear
         system in z. Slower (one lift per step); along the physics NMPC's bang-bang deployment
         from the paper's start far more accurate beyond 30 steps (docs/comparison/
-        README.md, *What the comparison shows*)."""
+        README.md, *What the comparison shows*). One start may be given as x0 (n,), u (T,)."""
+        x0, u = np.atleast_2d(np.asarray(x0)), np.asarray(u)
+        if u.ndim == 1 and len(x0) == 1:
+            u = u[None]
+        if x0.ndim != 2 or x0.shape[1] != self.n or u.ndim != 2 or len(u) != len(x0):
+            raise ValueError(f'predict takes x0 (N, {self.n}) and u (N, T), got x0 '
+                             f'{np.shape(x0)} and u {np.shape(u)}')
         if relift:
-            states = [np.atleast_2d(np.asarray(x0, dtype=float))]
-            for k in range(np.shape(u)[1]):
+            states = [x0.astype(float)]
+            for k in range(u.shape[1]):
                 states.append(self.step(states[-1], u[:, k]))
             return np.stack(states, axis=1)
-        z = self.psi_x(np.atleast_2d(x0))
+        z = self.psi_x(x0)
         states = [z[:, :self.n]]
-        for k in range(np.shape(u)[1]):
+        for k in range(u.shape[1]):
             z = z @ self.A.T + self.psi_u(z[:, :self.n], u[:, k])[:, None] * self.B.T
             states.append(z[:, :self.n])
         return np.stack(states, axis=1)

@@ -84,4 +84,6 @@ def torch_device(text):
 #: ROS_DOMAIN_ID: DDS's port formula allows 0..232; 0..101 also stays clear of Linux's
 #: ephemeral ports (the ROS 2 docs, "The ROS_DOMAIN_ID").
 DOMAIN_ID = integer(0, 232)
+#: numpy's and Optuna's seeds are unsigned 32-bit.
+SEED = integer(0, 2 ** 32 - 1)
 STEPS = integer(1)

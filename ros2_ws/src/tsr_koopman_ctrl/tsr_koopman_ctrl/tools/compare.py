@@ -62,10 +62,18 @@ def compare(laws, presets, steps, theta_max=None):
     starts = [(s, 'comparison') for s in COMPARISON_STARTS] + \
         [(s, 'held-out') for s in HELD_OUT_STARTS]
     if theta_max is not None:
-        laws = [law for law in laws if 'theta_max' in law_class(law).Settings.__dataclass_fields__]
+        bounded = [law for law in CONTROLLERS
+                   if 'theta_max' in law_class(law).Settings.__dataclass_fields__]
+        if not set(laws) & set(bounded):
+            raise ValueError(f'--theta-max: none of {list(laws)} takes a swing bound (those '
+                             f'that do: {sorted(bounded)})')
+        laws = [law for law in laws if law in bounded]
     defaults_shown = set()
     for name in dict.fromkeys(presets):     # each preset once, in the order given
         values = {} if name == 'tuned' else preset(name)
+        if name != 'tuned' and not set(values) & set(laws) | NOT_TUNED & set(laws):
+            raise ValueError(f'--presets {name}: sets none of the laws compared '
+                             f'({list(laws)}), only {sorted(values)}')
         for law in laws:
             label = name
             if law in NOT_TUNED and law not in values:   # its defaults, once
@@ -87,8 +95,10 @@ def compare(laws, presets, steps, theta_max=None):
                 # Untuned runs stay out of the plots: ten curves per panel are already many.
                 if os.path.splitext(os.path.basename(name))[0] != 'untuned':
                     plotted[f'{law} ({label})'] = loop
-                print(f"{law} ({label}) from {list(start)}: settle {row['settle_tau']}, "
-                      f"ratio {row['frontier_ratio']}", flush=True)
+                settle, ratio = row['settle_tau'], row['frontier_ratio']
+                print(f'{law} ({label}) from {list(start)}: settle '
+                      f"{'-' if settle is None else f'{settle:.2f}'}, ratio "
+                      f"{'-' if ratio is None else f'{ratio:.3f}'}", flush=True)
     return rows, loops
 
 
@@ -130,7 +140,7 @@ def markdown(rows):
 
 
 def parser():
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='compare', description=__doc__.split('\n\n')[0])
     p.add_argument('--laws', nargs='+', default=sorted(set(CONTROLLERS) - SLOW_LAWS),
                    choices=sorted(CONTROLLERS),
                    help=f'default: every law but {", ".join(sorted(SLOW_LAWS))} (slow: name it, '

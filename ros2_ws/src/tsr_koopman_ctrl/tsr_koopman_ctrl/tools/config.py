@@ -48,7 +48,7 @@ def example_yaml(node_name='tsr_controller', default_law='koopman_mpc'):
 
 def main(argv=None):
     description = __doc__.split('\n\n')[0].rstrip('.') + ', to stdout.'
-    argparse.ArgumentParser(description=description).parse_args(argv)
+    argparse.ArgumentParser(prog='config', description=description).parse_args(argv)
     sys.stdout.write(example_yaml())
     return 0
 

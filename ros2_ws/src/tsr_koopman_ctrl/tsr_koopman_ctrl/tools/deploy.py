@@ -37,7 +37,7 @@ from tsr_koopman_ctrl.tools.report import write_report
 
 
 def parse_args(argv):
-    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser = argparse.ArgumentParser(prog='deploy', description=__doc__.split('\n\n')[0])
     parser.add_argument('--controller', default='koopman_mpc', choices=sorted(CONTROLLERS))
     parser.add_argument('--model', help='model directory or shipped model name for the '
                         'koopman_* laws (default: their `model` setting, koopman_default)')
@@ -77,7 +77,7 @@ def parse_args(argv):
     args = parser.parse_args(argv)
     try:
         args.law_settings = law_settings(args.set, args.model)
-        for law, values in (preset(args.preset) if args.preset else {}).items():
+        for law, values in (preset(args.preset, SECTIONS) if args.preset else {}).items():
             args.law_settings[law] = {**values, **args.law_settings.get(law, {})}
     except ValueError as error:
         parser.error(str(error))

@@ -157,7 +157,7 @@ def plot_sweep(rows, key, xlabel, path):
 
 
 def parser():
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='evaluate', description=__doc__.split('\n\n')[0])
     p.add_argument('--model', default=DEFAULT_MODEL)
     p.add_argument('--out', default='out/evaluation', type=cli.output_dir)
     p.add_argument('--test-trajectories', type=cli.integer(1), default=5000)

@@ -171,7 +171,7 @@ def plot_rounds(rounds, nominal, path, plant):
 
 
 def parser():
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='loop', description=__doc__.split('\n\n')[0])
     p.add_argument('--plant', required=True, help='plant variant (tsr_sim config/plants)')
     p.add_argument('--rounds', type=cli.integer(1), default=2)
     p.add_argument('--law', default='koopman_mpc', choices=['koopman_mpc', 'koopman_lqr'])

@@ -49,7 +49,7 @@ def table(results):
 
 
 def parser():
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='mpc_sweep', description=__doc__.split('\n\n')[0])
     p.add_argument('--models', nargs='+', default=[DEFAULT_MODEL])
     p.add_argument('--horizons', nargs='+', type=cli.integer(1), default=[5])
     p.add_argument('--steps', type=cli.STEPS, default=2000)

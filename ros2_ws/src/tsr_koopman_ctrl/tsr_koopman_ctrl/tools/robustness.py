@@ -57,8 +57,9 @@ def grid(laws, steps):
                     {'x0': list(x0), 'settle_tau': tau, 'final_length_offset': offset,
                      'ratio': None if tau is None or nominal[x0][0] is None
                      else tau / nominal[x0][0]} for x0, (tau, offset) in zip(STARTS, results)]})
-                print(f'{law} {label} {case}: '
-                      f"{[r['settle_tau'] for r in rows[-1]['starts']]}", flush=True)
+                settled = ['-' if r['settle_tau'] is None else f"{r['settle_tau']:.2f}"
+                           for r in rows[-1]['starts']]
+                print(f"{law} {label} {case}: {', '.join(settled)}", flush=True)
     return rows
 
 
@@ -82,7 +83,7 @@ def markdown(rows):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='robustness', description=__doc__.split('\n\n')[0])
     p.add_argument('--laws', nargs='+', default=['koopman_mpc', 'linear_lqr'],
                    choices=sorted(CONTROLLERS))
     p.add_argument('--steps', type=cli.STEPS, default=2000)

@@ -14,6 +14,7 @@ koopman_block); the file it writes is an ordinary model file.
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 
@@ -21,7 +22,7 @@ import torch
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.learning import dataset as datasets
-from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
+from tsr_koopman_ctrl.learning.trainer import CHECKPOINT, save_model, Trainer
 from tsr_koopman_ctrl.model import model_file, shipped
 from tsr_koopman_ctrl.tools import cli
 
@@ -87,7 +88,7 @@ def structure_from_args(args):
 
 
 def parser():
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='train', description=__doc__.split('\n\n')[0])
     p.add_argument('--out', required=True, type=cli.model_dir, help='model directory to write')
     p.add_argument('--data', action='append', default=[], help='dataset file (repeatable)')
     p.add_argument('--trajectories', type=int, default=40_000,
@@ -108,14 +109,14 @@ def parser():
     p.add_argument('--anchor-equilibrium', action='store_true',
                    help='make x = 0, u = 3 an exact fixed point of the lifted model (not in the '
                    'paper)')
-    p.add_argument('--data-seed', type=int, default=0)
+    p.add_argument('--data-seed', type=cli.SEED, default=0)
     p.add_argument('--test-trajectories', type=cli.integer(1), default=5000)
-    p.add_argument('--test-seed', type=int, default=datasets.TEST_SEED)
+    p.add_argument('--test-seed', type=cli.SEED, default=datasets.TEST_SEED)
     p.add_argument('--epochs', type=cli.integer(1))
     p.add_argument('--lift-dim', type=int, help='K, the number of learned observables')
     p.add_argument('--batch-size', type=int)
     p.add_argument('--learning-rate', type=cli.number(above=0))
-    p.add_argument('--seed', type=int)
+    p.add_argument('--seed', type=cli.SEED)
     p.add_argument('--device', type=cli.torch_device,
                    help='torch device (default: cuda if present, else cpu)')
     p.add_argument('--threads', type=cli.integer(1), help='torch CPU threads')
@@ -150,6 +151,9 @@ def main(argv=None):
             init, base, _ = model_file.load(shipped.resolve(args.init))
         config = config_from_args(args, base)
         structure = structure_from_args(args)
+        if args.resume and not os.path.exists(os.path.join(args.out, CHECKPOINT)):
+            # Said before the data is sampled (a minute), as Trainer.restore would after.
+            raise ValueError(f'cannot resume: no {os.path.join(args.out, CHECKPOINT)}')
         data = load_data(args)
         test_data = test_set(args.test_trajectories, args.test_seed)
         trainer = Trainer(config, args.out, args.device, progress=not args.quiet,

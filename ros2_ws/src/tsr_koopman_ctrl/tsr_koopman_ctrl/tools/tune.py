@@ -348,7 +348,7 @@ def ratio_text(figures):
 
 
 def parser():
-    p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    p = argparse.ArgumentParser(prog='tune', description=__doc__.split('\n\n')[0])
     p.add_argument('--law', required=True, choices=sorted(CONTROLLERS))
     p.add_argument('--trials', type=cli.integer(1), default=60,
                    help='finished trials in the study')
@@ -372,7 +372,7 @@ def parser():
     p.add_argument('--swing-max', type=cli.number(above=0), default=0.8,
                    help='largest |theta| a run may reach and still count as settled [rad]')
     p.add_argument('--steps', type=cli.STEPS, default=2000)
-    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--seed', type=cli.SEED, default=0)
     p.add_argument('--out', default=os.path.join('out', 'tune'), type=cli.output_dir)
     p.add_argument('--fix', action='append', default=[], metavar='SETTING=VALUE',
                    help='hold a setting at a value instead of tuning it (repeatable; e.g. '
