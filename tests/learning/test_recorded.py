@@ -260,6 +260,22 @@ def test_truncated_bag_is_recovered_with_a_warning(tmp_path):
         'truncated'
 
 
+def test_the_messages_hash_is_the_recorded_messages_not_the_files(good_bag, tmp_path):
+    """Identity for retrain's "trained on and held out" check: another chunking of the same
+    messages (what `bag recover` writes) is the same data; one other tension is not."""
+    path, x, u, excitation = good_bag
+    rechunked = write_loop(tmp_path / 'rechunked', x, u, excitation=excitation, chunk_size=2000)
+    changed = u.copy()
+    changed[50] += 0.125
+    other = write_loop(tmp_path / 'other', x, changed, excitation=excitation)
+    first, again, different = (recorded.read_windows(b, steps=30).provenance
+                               for b in (path, rechunked, other))
+    assert first['sha256'] != again['sha256']                  # other bytes in the files
+    assert first['messages_sha256'] == again['messages_sha256']
+    assert first['messages_sha256'] != different['messages_sha256']
+    assert first['messages_sha256'] not in (first['sha256'], different['sha256'])
+
+
 # --------------------------------------------------------------------------- bad bags
 
 def bad(path, match, **options):

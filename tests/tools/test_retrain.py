@@ -1,5 +1,6 @@
 """The retrain command on tiny synthetic bags: provenance, held-out errors, bad bags, DDP."""
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -21,6 +22,7 @@ from test_recorded import H, write_loop  # noqa: E402
 from tsr_koopman_ctrl.learning import dataset as datasets  # noqa: E402
 from tsr_koopman_ctrl.learning.trainer import save_model, Trainer  # noqa: E402
 from tsr_koopman_ctrl.model import LiftedModel, model_file  # noqa: E402
+from tsr_koopman_ctrl.tools import bag as bag_tool  # noqa: E402
 from tsr_koopman_ctrl.tools import retrain  # noqa: E402
 
 TINY = {'lift_dim': 4, 'hidden': 16, 'layers': 2, 'input_hidden': 8, 'input_layers': 1,
@@ -48,14 +50,15 @@ def init_model(one_thread, tmp_path_factory):
     return out
 
 
-def plant_bag(path, n, seed):
-    """A loop the dynamics really ran: near the equilibrium, tension 3 +- 0.5 (excitation)."""
+def plant_bag(path, n, seed, **options):
+    """A loop the dynamics really ran: near the equilibrium, tension 3 +- 0.5 (excitation);
+    `options` for write_loop."""
     rng = np.random.default_rng(seed)
     x0 = rng.uniform(-0.05, 0.05, 4)
     excitation = rng.choice([-0.5, 0.5], n)
     u = 3.0 + excitation
     x = dynamics.rollout(x0[None], u[None], H, 10)[0][:n]
-    return write_loop(path, x, u, excitation=excitation)
+    return write_loop(path, x, u, excitation=excitation, **options)
 
 
 @pytest.fixture(scope='module')
@@ -141,6 +144,16 @@ def test_a_bag_both_trained_on_and_held_out_is_refused(bags, tmp_path, capsys):
                        '--config-json', json.dumps(TINY))
     assert code == 2 and err.count('\n') == 1
     assert err.startswith(f'retrain: {b} has the same content as the held-out bag {copy}')
+    # A `bag recover` copy: the same messages in other files (recover writes 1 MiB chunks, this
+    # bag has small ones), refused all the same.
+    small = plant_bag(tmp_path / 'small_chunks', 100, 4, chunk_size=2000)
+    recovered = tmp_path / 'recovered'
+    bag_tool.recover(small, out=recovered)
+    assert sha256_of(recovered) != sha256_of(small)
+    code, _, err = run(capsys, '--bags', a, small, '--held-out', recovered, '--out',
+                       tmp_path / 'm', '--config-json', json.dumps(TINY))
+    assert code == 2 and err == (f'retrain: {small} has the same content as the held-out bag '
+                                 f'{recovered}: a bag is trained on or held out, not both\n')
     assert not (tmp_path / 'm').exists()
 
 
@@ -168,6 +181,23 @@ def test_bad_bags_are_named_and_exit_2_or_skipped(bags, tmp_path, capsys):
     assert [s['bag'] for s in skipped] == [str(tmp_path / 'empty'), str(short)]
 
 
+def test_skipping_every_held_out_bag_with_no_table1_test_is_one_line(bags, tmp_path, capsys):
+    """Nothing left to score the models on: refused before training, not a traceback after."""
+    a = bags[0]
+    (tmp_path / 'failed').mkdir()                      # what a deploy that failed leaves
+    (tmp_path / 'failed' / 'metadata.yaml').write_text('rosbag2_bagfile_information: {}\n')
+    code, printed, err = run(capsys, '--bags', a, '--held-out', tmp_path / 'failed', '--out',
+                             tmp_path / 'm', '--config-json', json.dumps({**TINY, 'epochs': 1}),
+                             '--test-trajectories', '0', '--skip-bad')
+    assert code == 2 and not (tmp_path / 'm').exists()
+    assert err.splitlines() == [
+        f'retrain: warning: skipped held-out bag: {tmp_path / "failed"}: empty bag: no .mcap '
+        'files',
+        'retrain: no usable held-out bag and --test-trajectories 0: nothing to test on (give a '
+        'usable --held-out bag or --test-trajectories > 0)']
+    assert 'training on' not in printed
+
+
 def test_from_scratch_with_a_config_and_a_sampled_mix(bags, init_model, tmp_path, capsys):
     a, b, c = bags
     # --stride 30: non-overlapping windows, 2 + 4 of them (the first bag's first three are
@@ -189,6 +219,19 @@ def test_from_scratch_with_a_config_and_a_sampled_mix(bags, init_model, tmp_path
                        '--config-json', '{"lift_dim": 6}')
     assert code == 2 and err == ('retrain: cannot fine-tune with another lift_dim than the init '
                                  'model: use --from-scratch\n')
+
+
+def test_an_unknown_config_field_is_named_with_the_known_ones(bags, init_model, tmp_path,
+                                                              capsys):
+    a = bags[0]
+    known = ', '.join(sorted(f.name for f in dataclasses.fields(model_file.KoopmanConfig)))
+    for init in (['--init', init_model], []):          # fine-tuning and from scratch
+        code, _, err = run(capsys, '--bags', a, *init, '--out', tmp_path / 'm',
+                           '--config-json', '{"nosuchfield": 1, "epochs": 1}')
+        assert code == 2 and err == ('retrain: --config-json: unknown field nosuchfield '
+                                     f'(known: {known})\n')
+        assert 'lift_dim' in known and 'epochs' in known
+    assert not (tmp_path / 'm').exists()
 
 
 def _retrain_rank(rank, port, argv, directory):

@@ -27,8 +27,10 @@ is not an error: the reader keeps what it can recover (`bag.reader`) and a warni
 how much; so do lines for skipped gaps and for steps answered by differing commands.
 
 Provenance per bag (in the Dataset and `BagWindows.provenance`): path, sha256 of its .mcap
-files (concatenated in split order, and per file), message counts per topic, windows cut, gap
-counts, the RunInfo (plant, controller, model, excitation) and the units scale.
+files (concatenated in split order, and per file), sha256 of its recorded messages
+(`messages_sha256`: the same for a recovered or re-chunked copy, whose files differ), message
+counts per topic, windows cut, gap counts, the RunInfo (plant, controller, model, excitation)
+and the units scale.
 """
 
 import collections
@@ -120,6 +122,30 @@ def content_hash(path):
     return total.hexdigest(), files
 
 
+class MessagesHash:
+    """sha256 of a bag's messages as recorded: per topic, its type and every payload in order;
+    the topics in name order. What identifies the data when the files do not: `bag recover` or
+    another chunking writes the same messages into other bytes (and may interleave the topics
+    differently); log times and file layout are left out."""
+
+    def __init__(self):
+        self.topics = {}
+
+    def add(self, topic, type_name, data):
+        digest = self.topics.get(topic)
+        if digest is None:
+            digest = self.topics[topic] = hashlib.sha256()
+        # Length-prefixed, so that no two message sequences hash the same bytes.
+        digest.update(type_name.encode() + b'\0' + len(data).to_bytes(8, 'little'))
+        digest.update(data)
+
+    def hexdigest(self):
+        total = hashlib.sha256()
+        for topic in sorted(self.topics):
+            total.update(f'{topic}\0{self.topics[topic].hexdigest()}\n'.encode())
+        return total.hexdigest()
+
+
 @functools.lru_cache(maxsize=None)
 def installed_definition(type_name):
     """The definition this build would record for `type_name` (the ament index's .msg files)."""
@@ -165,14 +191,16 @@ class _Topic:
 
 
 def scan(bag, reader):
-    """One pass over the bag: message counts per topic, the topic types, and the decoded
-    states and commands of every state and tension topic, their definitions checked first."""
+    """One pass over the bag: message counts per topic, the topic types, the decoded states
+    and commands of every state and tension topic (their definitions checked first), and the
+    hash of the messages (`MessagesHash`)."""
     from mcap_ros2.decoder import DecoderFactory
     factory, decoders, checked = DecoderFactory(), {}, {}
-    counts, types = collections.Counter(), {}
+    counts, types, digest = collections.Counter(), {}, MessagesHash()
     topics = collections.defaultdict(_Topic)
     for msg in reader.messages():
         counts[msg.topic] += 1
+        digest.add(msg.topic, msg.type, msg.data)
         types.setdefault(msg.topic, set()).add(msg.type)
         if msg.type not in CHECKED_TYPES:
             continue
@@ -199,7 +227,7 @@ def scan(bag, reader):
             topic.repeats += 1
         else:
             topic.conflicts.append(decoded.step)
-    return counts, types, topics
+    return counts, types, topics, digest.hexdigest()
 
 
 def _same_float(a, b, equal_nan=True):
@@ -283,7 +311,7 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     except ValueError as error:
         detail = str(error).split(': ', 1)[-1]
         raise BagDataError(bag, f'empty bag: no readable message ({detail})')
-    counts, types, topics = scan(bag, reader)
+    counts, types, topics, messages_digest = scan(bag, reader)
     namespace = _namespace(bag, types, namespace)
     state_topic = topics[wire.resolve(wire.STATE_TOPIC, namespace)]
     tension_topic = topics[wire.resolve(wire.TENSION_TOPIC, namespace)]
@@ -400,7 +428,8 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     excitation = np.asarray(loop.excitation if loop.excitation is not None else [])
     provenance = _json({
         'source': 'bag', 'path': os.path.abspath(bag), 'sha256': digest, 'files': files,
-        'messages': dict(sorted(counts.items())), 'namespace': namespace, 'steps': steps,
+        'messages_sha256': messages_digest, 'messages': dict(sorted(counts.items())),
+        'namespace': namespace, 'steps': steps,
         'windows': len(starts), 'h': bag_h, 'scale': dataclasses.asdict(scale),
         'plant': simulator, 'controller': controller.get('controller'),
         'model': controller.get('model'), 'excitation': controller.get('excitation'),

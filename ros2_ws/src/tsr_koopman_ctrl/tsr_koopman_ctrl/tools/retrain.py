@@ -14,12 +14,14 @@ R sampled Table-1 trajectories per recorded window into the training data.
 A bad bag is one line naming it and what is wrong, and exit status 2 (every bad bag is named,
 not only the first). With `--skip-bad` bad training and held-out bags are skipped with a
 warning line and recorded as skipped in the model's provenance; a bag given both to train and
-to hold out is refused either way. A crash-truncated bag is not bad: a warning says how much
-was recovered, and its recovered windows are used.
+to hold out is refused either way, also under another name or as a recovered copy (the same
+recorded messages). Skipping that leaves nothing to test on (no usable held-out bag and
+`--test-trajectories 0`) is refused too. A crash-truncated bag is not bad: a warning says how
+much was recovered, and its recovered windows are used.
 
 The model file holds `save_model`'s metadata plus `retrain`: every bag with the sha256 of its
-.mcap files and its message counts, the init model (path, weights sha256), the errors before
-and after, the sampled mix, the command line and the git commit.
+.mcap files and of its messages, and its message counts, the init model (path, weights sha256),
+the errors before and after, the sampled mix, the command line and the git commit.
 
 Data-parallel (DistributedDataParallel, `learning.distributed`): the same command under
 ``torchrun --nproc_per_node=W -m tsr_koopman_ctrl.tools.retrain ...``. Rank r reads bags r,
@@ -112,7 +114,7 @@ def parser():
     p.add_argument('--learning-rate', type=cli.number(above=0),
                    help='initial learning rate (fine-tuning: a tenth of the init\'s)')
     p.add_argument('--batch-size', type=int, help='global batch (split over the ranks)')
-    p.add_argument('--seed', type=int, help='training seed')
+    p.add_argument('--seed', type=cli.SEED, help='training seed')
     p.add_argument('--namespace', help='the loop to read in bags holding several')
     p.add_argument('--skip-bad', action='store_true',
                    help='skip bad bags with a warning instead of exit 2')
@@ -138,6 +140,15 @@ def _overrides(text):
         raise UsageError(f'--config-json: {error}')
     if not isinstance(values, dict):
         raise UsageError('--config-json: not a JSON object')
+    # A retired option at its "off" value means nothing (model_file.KoopmanConfig.from_dict).
+    values = {k: v for k, v in values.items()
+              if not (k in model_file.RETIRED_OPTIONS and v == model_file.RETIRED_OPTIONS[k])}
+    # Named here, before any other check could read an unknown key as a changed one.
+    known = sorted(f.name for f in dataclasses.fields(model_file.KoopmanConfig))
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise UsageError(f'--config-json: unknown field{"s" if len(unknown) > 1 else ""} '
+                         f'{", ".join(unknown)} (known: {", ".join(known)})')
     return values
 
 
@@ -251,16 +262,22 @@ def _summary(result):
     return {'provenance': result.provenance, 'warnings': result.warnings}
 
 
+def _identity(summary):
+    """What makes two bags the same data: their recorded messages, not their files' bytes (a
+    `bag recover` or re-chunked copy has other files)."""
+    return summary['provenance']['messages_sha256']
+
+
 def _check(train_paths, held_paths, train, held, skip_bad):
     """Lines for bad and duplicated bags; the indices of the usable ones. Raises for a bag
     held out and trained on (never skipped: the comparison would be meaningless)."""
-    held_hashes = {s['provenance']['sha256']: held_paths[i] for i, s in held.items()
+    held_hashes = {_identity(s): held_paths[i] for i, s in held.items()
                    if not isinstance(s, str)}
     for index, s in train.items():
-        if not isinstance(s, str) and s['provenance']['sha256'] in held_hashes:
+        if not isinstance(s, str) and _identity(s) in held_hashes:
             raise UsageError(f"{train_paths[index]} has the same content as the held-out bag "
-                             f"{held_hashes[s['provenance']['sha256']]}: a bag is trained on or "
-                             'held out, not both')
+                             f"{held_hashes[_identity(s)]}: a bag is trained on or held out, "
+                             'not both')
     bad, seen = [], {}
     for kind, paths, results in (('training', train_paths, train),
                                  ('held-out', held_paths, held)):
@@ -269,9 +286,9 @@ def _check(train_paths, held_paths, train, held, skip_bad):
             if isinstance(s, str):
                 bad.append((kind, index, s))
                 continue
-            digest = s['provenance']['sha256']
+            digest = _identity(s)
             if digest in seen and kind == 'training':
-                bad.append((kind, index, f'{paths[index]}: same content (sha256 {digest[:12]}) '
+                bad.append((kind, index, f'{paths[index]}: same messages (sha256 {digest[:12]}) '
                             f'as {seen[digest]}, given twice'))
             seen.setdefault(digest, paths[index])
     if bad and not skip_bad:
@@ -370,6 +387,12 @@ def run(args, context, given):
     used = [i for i in sorted(train) if ('training', i) not in skipped]
     if not used:
         raise UsageError('no usable training bag')
+    # --skip-bad may leave nothing to score the models on; the model file needs a test error,
+    # so this is refused before training, as giving nothing to test on is.
+    if args.held_out and not args.test_trajectories and all(
+            isinstance(held[i], str) or ('held-out', i) in skipped for i in held):
+        raise UsageError('no usable held-out bag and --test-trajectories 0: nothing to test on '
+                         '(give a usable --held-out bag or --test-trajectories > 0)')
 
     mine_used = [i for i in sorted(local) if ('training', i) not in skipped]
     parts = [local[i].data for i in mine_used]
@@ -456,7 +479,8 @@ def run(args, context, given):
     command = 'retrain ' + ' '.join(shlex.quote(a) for a in given)
     bag_provenance = [train[i]['provenance'] for i in used]
     retrain = {
-        'bags': [{k: p[k] for k in ('path', 'sha256', 'files', 'messages', 'windows')}
+        'bags': [{k: p[k] for k in ('path', 'sha256', 'messages_sha256', 'files', 'messages',
+                                    'windows')}
                  for p in bag_provenance],
         'held_out': [held[i]['provenance'] for i in sorted(held)
                      if not isinstance(held[i], str) and ('held-out', i) not in skipped],
