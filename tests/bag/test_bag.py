@@ -1,8 +1,10 @@
 """The bag writer and reader, ROS-free, checked against the independent rosbags reader."""
 
+import dataclasses
 import os
 
 import pytest
+from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 import yaml
@@ -108,3 +110,69 @@ def test_writer_refuses_a_non_empty_directory(tmp_path):
 def test_missing_bag_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match='no bag at'):
         bag.BagReader(str(tmp_path / 'nothing'))
+
+
+def channels_qos(path):
+    """topic -> offered_qos_profiles of the channels in an MCAP file's summary."""
+    with open(path, 'rb') as f:
+        return {c.topic: c.metadata['offered_qos_profiles']
+                for c in make_reader(f).get_summary().channels.values()}
+
+
+def test_a_topic_added_before_its_qos_is_known_gets_it_in_channel_and_metadata(tmp_path):
+    """A channel cannot change once written: a topic whose offered QoS is pending is listed in
+    metadata.yaml at once, and its channel waits for the QoS, its first message or the close."""
+    path = tmp_path / 'b'
+    writer = bag.BagWriter(str(path))
+    for name in ('/learnt', '/early', '/never'):
+        writer.add_topic(dataclasses.replace(string_topic(name), offered_qos=[]),
+                         qos_pending=True)
+    meta = yaml.safe_load(open(path / 'metadata.yaml'))['rosbag2_bagfile_information']
+    assert [t['topic_metadata']['name'] for t in meta['topics_with_message_count']] == [
+        '/learnt', '/early', '/never']
+    writer.set_offered_qos('/learnt', QOS)
+    writer.write('/early', cdr_string('before any QoS'), log_time_ns=1)    # not held back
+    writer.write('/learnt', cdr_string('after'), log_time_ns=2)
+    with pytest.raises(ValueError, match='not waiting'):
+        writer.set_offered_qos('/early', QOS)                          # its channel is written
+    writer.close()
+    expected = {'/learnt': yaml.safe_dump(QOS, sort_keys=False), '/early': '', '/never': ''}
+    assert channels_qos(path / 'b_0.mcap') == expected
+    meta = yaml.safe_load(open(path / 'metadata.yaml'))['rosbag2_bagfile_information']
+    # metadata.yaml of version 9 holds the profiles as YAML, the channel as a string.
+    assert {t['topic_metadata']['name']: t['topic_metadata']['offered_qos_profiles']
+            for t in meta['topics_with_message_count']} == {
+                '/learnt': QOS, '/early': [], '/never': []}
+    with AnyReader([path], default_typestore=TYPESTORE) as other:
+        qos = {c.topic: c.ext.offered_qos_profiles for c in other.connections}
+        assert [(q.reliability.value, q.durability.value, q.depth) for q in qos['/learnt']] == [
+            (1, 2, 10)]
+        assert [m.data for m in (other.deserialize(raw, c.msgtype)
+                                 for c, _, raw in other.messages())] == ['before any QoS', 'after']
+
+
+def test_offered_qos_is_written_as_rosbags_own_version_9_writer_writes_it(tmp_path):
+    """The independent reference: rosbags' MCAP writer at metadata version 9 (what Jazzy's
+    rosbag2 reads: policies by name, metadata.yaml holding the profiles as YAML)."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    infinite = QosTime(9223372036, 854775807)
+    theirs = Qos(QosHistory.KEEP_LAST, 10, QosReliability.RELIABLE,
+                 QosDurability.TRANSIENT_LOCAL, infinite, infinite, QosLiveliness.AUTOMATIC,
+                 infinite, False)
+    with Writer(tmp_path / 'rosbags', version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        writer.add_connection('/chatter', 'std_msgs/msg/String', typestore=TYPESTORE,
+                              offered_qos_profiles=[theirs])
+    never = 2 ** 63 - 1                   # rclpy's infinite Duration, in nanoseconds
+    ours = definitions.qos_dict(1, 10, 1, 1, 1, never, never, never)
+    with bag.BagWriter(str(tmp_path / 'ours')) as writer:
+        writer.add_topic(dataclasses.replace(string_topic(), offered_qos=[ours]))
+
+    def profiles(directory):
+        meta = yaml.safe_load(open(directory / 'metadata.yaml'))['rosbag2_bagfile_information']
+        (topic,) = meta['topics_with_message_count']
+        (mcap,) = directory.glob('*.mcap')
+        return (meta['version'], topic['topic_metadata']['offered_qos_profiles'],
+                yaml.safe_load(channels_qos(mcap)['/chatter']))
+    assert profiles(tmp_path / 'ours') == profiles(tmp_path / 'rosbags')

@@ -382,6 +382,33 @@ def test_bag_info_reads_the_files_and_says_what_metadata_says(tmp_path, capsys):
     assert last.startswith('metadata.yaml: ') and 'differs' not in last
 
 
+def test_bag_info_lists_every_topic_with_its_count_zero_included(tmp_path, capsys):
+    """A topic without messages is part of the bag (a deploy bag's /tsr/excitation): info lists
+    it as recover does, for the bag and for its one file."""
+    with bag.BagWriter(str(tmp_path / 'b')) as writer:
+        writer.add_topic(int_topic())
+        writer.add_topic(string_topic())
+        writer.write('/chatter', cdr_string('only'), log_time_ns=1)
+    for path in (tmp_path / 'b', tmp_path / 'b' / 'b_0.mcap'):
+        assert bag_tool.main(['info', str(path)]) == 0
+        lines = capsys.readouterr().out.splitlines()
+        topics = lines[lines.index('topics:') + 1:lines.index('files:')]
+        assert [ln.split() for ln in topics] == [['/numbers', 'std_msgs/msg/Int32', '0'],
+                                                 ['/chatter', 'std_msgs/msg/String', '1']]
+    assert bag_tool.main(['recover', str(tmp_path / 'b')]) == 0
+    assert '(/numbers 0, /chatter 1)' in capsys.readouterr().out
+
+
+def test_recover_of_one_file_says_it_takes_a_bag_directory(tmp_path, capsys):
+    killed, _ = write_killed_bag(tmp_path, n=100, kill_at=100)
+    out = tmp_path / 'fixed'
+    assert bag_tool.main(['recover', str(killed / 'b_0.mcap'), '--out', str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f'bag: recover takes a bag directory, not a file: {killed / "b_0.mcap"} '
+                   f'(its bag: {killed})\n')
+    assert not out.exists()
+
+
 def test_bag_module_runs_as_a_command(tmp_path):
     killed, _ = write_killed_bag(tmp_path, n=100, kill_at=100)
     run = subprocess.run([sys.executable, '-m', 'tsr_koopman_ctrl.tools.bag', 'info',

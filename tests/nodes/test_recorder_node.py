@@ -5,12 +5,14 @@ Bags are read twice: with the project's reader and with the independent rosbags 
 
 import signal
 
+from mcap.reader import make_reader
 import pytest
 from rclpy.duration import Duration
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
 from std_msgs.msg import UInt64
+import yaml
 
 from tsr_koopman_ctrl.bag import BagReader
 
@@ -107,6 +109,49 @@ def test_a_matched_topic_that_stays_silent_is_logged_once(ros, start_node, tmp_p
     ros.spin_for(2.5)              # two more checks: it is not repeated
     assert log.read_text().count(warning) == 1, log.read_text()
     assert f'no message on {TOPIC}' not in log.read_text()
+
+
+@pytest.mark.parametrize('discovery_period', [0.05, 60.0])
+def test_the_publishers_offered_qos_is_in_the_bag_of_topics_subscribed_at_start(
+        ros, start_node, tmp_path, discovery_period):
+    """Topics and types given: subscribed before any publisher exists, yet the bag carries the
+    publishers' QoS, as `ros2 bag record` writes it (metadata.yaml and the MCAP channel). It is
+    learnt by the discovery timer, or (a 60-s period: never before the first message) at the
+    first message, which is recorded all the same, or at the close for a silent topic."""
+    silent = '/test/silent'
+    recorder = start_recorder(start_node, tmp_path, topics=[TOPIC, silent],
+                              types=['std_msgs/msg/UInt64'] * 2,
+                              discovery_period=discovery_period)
+    quiet = ros.node.create_publisher(UInt64, silent, QoSProfile(
+        depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE))
+    ros.spin_until(lambda: quiet.get_subscription_count() > 0, timeout=20,
+                   what='the recorder to subscribe')
+    pub = ros.node.create_publisher(UInt64, TOPIC, QoSProfile(
+        depth=100, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    ros.spin_until(lambda: pub.get_subscription_count() > 0, timeout=20,
+                   what='the recorder to subscribe')
+    ros.spin_for(0.5)              # several discovery periods, or none
+    for i in range(50):
+        pub.publish(UInt64(data=i))
+    assert pub.wait_for_all_acked(Duration(seconds=30))
+    ros.spin_for(1.0)
+    assert recorder.stop(signal.SIGINT) == 0
+    bag_dir = tmp_path / 'rec'
+    assert counters_with_rosbags(bag_dir) == list(range(50))
+    # As metadata version 9 names them (rosbags' own writer names them so too).
+    expected = {TOPIC: [('reliable', 'transient_local')], silent: [('reliable', 'volatile')]}
+    with AnyReader([bag_dir], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        from_metadata = {c.topic: [(q.reliability.name.lower(), q.durability.name.lower())
+                                   for q in c.ext.offered_qos_profiles]
+                         for c in reader.connections}
+    assert from_metadata == expected
+    with open(bag_dir / 'rec_0.mcap', 'rb') as f:
+        channels = make_reader(f).get_summary().channels.values()
+    from_channels = {c.topic: [(q['reliability'], q['durability'])
+                               for q in yaml.safe_load(c.metadata['offered_qos_profiles'])]
+                     for c in channels}
+    assert from_channels == expected
 
 
 @pytest.mark.parametrize('params, message', [

@@ -14,8 +14,16 @@ import yaml
 DEFINITION_SEPARATOR = '=' * 80
 _PRIMITIVES = {'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16', 'uint16',
                'int32', 'uint32', 'int64', 'uint64', 'string', 'wstring'}
-# rosbag2 writes an infinite QoS duration as this pair.
-_INFINITE_DURATION = {'sec': 2147483647, 'nsec': 4294967295}
+# An infinite QoS duration as Jazzy's rmw reports it (RMW_DURATION_INFINITE), and so rosbag2
+# writes it.
+_INFINITE_DURATION = {'sec': 9223372036, 'nsec': 854775807}
+# The rmw QoS enums by value, named as metadata version 9 writes them (rmw's
+# qos_string_conversions; rosbag2 PR #1476); a value past the end is 'unknown'.
+_HISTORY = ('system_default', 'keep_last', 'keep_all')
+_RELIABILITY = ('system_default', 'reliable', 'best_effort', 'unknown', 'best_available')
+_DURABILITY = ('system_default', 'transient_local', 'volatile', 'unknown', 'best_available')
+_LIVELINESS = ('system_default', 'automatic', 'manual_by_node', 'manual_by_topic', 'unknown',
+               'best_available')
 
 
 @dataclass
@@ -30,19 +38,26 @@ class TopicInfo:
 
     @property
     def qos_yaml(self):
-        return yaml.safe_dump(self.offered_qos, sort_keys=False) if self.offered_qos else ''
+        """The profiles as the MCAP channel's `offered_qos_profiles` string holds them."""
+        return (yaml.safe_dump(self.offered_qos, sort_keys=False, default_flow_style=False)
+                if self.offered_qos else '')
 
 
 def qos_dict(history, depth, reliability, durability, liveliness, deadline_ns, lifespan_ns,
              lease_ns, avoid_ros_namespace_conventions=False):
-    """One offered QoS profile in rosbag2's YAML form (enum values as integers)."""
+    """One offered QoS profile in rosbag2's YAML form of metadata version 9, from rmw's enum
+    values (what rclpy reports): policies by name, durations as sec / nsec."""
     def duration(ns):
         if ns is None or ns <= 0 or ns >= 2 ** 63 - 1:
             return dict(_INFINITE_DURATION) if ns else {'sec': 0, 'nsec': 0}
         return {'sec': int(ns // 10 ** 9), 'nsec': int(ns % 10 ** 9)}
-    return {'history': int(history), 'depth': int(depth), 'reliability': int(reliability),
-            'durability': int(durability), 'deadline': duration(deadline_ns),
-            'lifespan': duration(lifespan_ns), 'liveliness': int(liveliness),
+
+    def name(names, value):
+        return names[int(value)] if 0 <= int(value) < len(names) else 'unknown'
+    return {'history': name(_HISTORY, history), 'depth': int(depth),
+            'reliability': name(_RELIABILITY, reliability),
+            'durability': name(_DURABILITY, durability), 'deadline': duration(deadline_ns),
+            'lifespan': duration(lifespan_ns), 'liveliness': name(_LIVELINESS, liveliness),
             'liveliness_lease_duration': duration(lease_ns),
             'avoid_ros_namespace_conventions': bool(avoid_ros_namespace_conventions)}
 

@@ -99,7 +99,8 @@ class ReadReport:
 class BagReader:
     """Read a bag directory (or one .mcap file), recovering files a crash left without summary.
 
-    Iterate `messages()` or `decoded()`; `report` then tells what was read, file by file.
+    Iterate `messages()` or `decoded()`; `report` then tells what was read, file by file, and
+    `topics` every topic with a channel in the files read (messages or not), in file order.
     Raises ValueError when no file of the bag holds a readable message.
     """
 
@@ -112,10 +113,12 @@ class BagReader:
             raise FileNotFoundError(f'no .mcap files in {path}')
         self.report = ReadReport()
         self.schemas = {}              # type name -> Schema record
+        self.topics = {}               # topic name -> type name
         self._check_readable()
 
     def messages(self, topics=None):
         self.report = ReadReport()
+        self.topics = {}
         for path in self.files:
             report = FileReport(path=os.path.basename(path))
             self.report.files.append(report)
@@ -131,6 +134,7 @@ class BagReader:
                 elif isinstance(record, Channel):
                     schema = schemas.get(record.schema_id)
                     channels[record.id] = (record.topic, schema.name if schema else '')
+                    self.topics.setdefault(*channels[record.id])
 
     def decoded(self, topics=None):
         """Yield (BagMessage, decoded message) using the schema embedded in the bag."""

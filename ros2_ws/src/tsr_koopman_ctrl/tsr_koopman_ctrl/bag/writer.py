@@ -20,10 +20,15 @@ at most the last `flush_period` of messages (and at most one chunk) is lost; `Ba
 the rest and `python -m tsr_koopman_ctrl.tools.bag recover` makes a complete bag of it. There is
 no fsync: a power loss can lose what the OS had not written to the disk yet.
 
+A topic's offered QoS can be learnt after it is added (a recorder subscribes before any
+publisher is known, so that nothing is missed): `add_topic(info, qos_pending=True)` lists it in
+metadata.yaml at once but holds back its MCAP channel, which cannot change once written, until
+`set_offered_qos`, its first message or the close, whichever comes first.
+
 metadata.yaml is written when the first file opens and rewritten (atomically) at every time
-flush, split, new topic and at close, so a killed bag always lists its files and topics. Its
-message counts are those of the last rewrite: after a kill they can lag what the files hold
-(chunks written by size since then); the files, as read, are the truth.
+flush, split, new topic, learnt QoS and at close, so a killed bag always lists its files and
+topics. Its message counts are those of the last rewrite: after a kill they can lag what the
+files hold (chunks written by size since then); the files, as read, are the truth.
 """
 
 from dataclasses import dataclass
@@ -122,7 +127,8 @@ def bag_metadata(topics, files):
         'topics_with_message_count': [
             {'topic_metadata': {'name': t.name, 'type': t.type,
                                 'serialization_format': 'cdr',
-                                'offered_qos_profiles': t.qos_yaml,
+                                # version 9: the profiles as YAML, not the channel's string
+                                'offered_qos_profiles': yaml.safe_load(t.qos_yaml) or [],
                                 'type_description_hash': t.type_hash},
              'message_count': t.count}
             for t in topics],
@@ -174,15 +180,30 @@ class BagWriter:
         self.files = []
         self._stream = self._writer = None
         self._channel_ids = {}
+        self.qos_pending = set()       # topics whose channel waits for their offered QoS
         self._pending_since = None     # clock time of the oldest message not yet on disk
         self._open_file()
 
-    def add_topic(self, info: TopicInfo):
+    def add_topic(self, info: TopicInfo, qos_pending=False):
+        """Add a topic; `qos_pending`: its offered QoS is not known yet, so its channel is
+        written at `set_offered_qos`, its first message or the close, whichever comes first."""
         if info.name in self.topics:
             raise ValueError(f'topic {info.name} already added')
         self.topics[info.name] = info
         self.topic_counts[info.name] = 0
-        self._register(info)
+        if qos_pending:
+            self.qos_pending.add(info.name)
+        else:
+            self._register(info)
+        self._write_metadata()
+
+    def set_offered_qos(self, topic, offered_qos):
+        """The offered QoS (list of `definitions.qos_dict`) of a topic added with
+        `qos_pending`; writes its channel. ValueError once its channel is written."""
+        if topic not in self.qos_pending:
+            raise ValueError(f'topic {topic} is not waiting for its QoS')
+        self.topics[topic].offered_qos = list(offered_qos)
+        self._register_pending(topic)
         self._write_metadata()
 
     def write(self, topic, cdr_bytes, log_time_ns=None):
@@ -193,6 +214,8 @@ class BagWriter:
         if current.count and self._file_full(current, log_time_ns):
             self._split()
             current = self.files[-1]
+        if topic in self.qos_pending:
+            self._register_pending(topic)      # QoS still unknown: the message must not wait
         stream = self._stream
         written = stream.written
         self._writer.add_message(self._channel_ids[topic], log_time_ns, bytes(cdr_bytes),
@@ -231,6 +254,8 @@ class BagWriter:
     def close(self):
         if self._writer is None:
             return
+        for topic in list(self.qos_pending):   # every topic gets its channel, messages or not
+            self._register_pending(topic)
         self._finish_file()
         self._write_metadata()
         self._writer = None
@@ -257,8 +282,13 @@ class BagWriter:
         self._channel_ids = {}
         self.files.append(FileStats(path=os.path.basename(path)))
         for info in self.topics.values():
-            self._register(info)
+            if info.name not in self.qos_pending:
+                self._register(info)
         self._write_metadata()
+
+    def _register_pending(self, topic):
+        self.qos_pending.discard(topic)
+        self._register(self.topics[topic])
 
     def _register(self, info):
         schema_id = self._writer.register_schema(

@@ -2,9 +2,11 @@
 
 Topics are subscribed once a publisher shows their type (the loop's own topics at start, their
 types being known); the subscription is reliable and keeps all messages (nothing dropped on a
-burst), transient local where every publisher is. Relative topic names resolve in the node's
-namespace, as the loop's publishers' do. SIGINT and SIGTERM close the bag cleanly; the bag format
-itself is in `tsr_koopman_ctrl.bag`.
+burst), transient local where every publisher is. A topic subscribed at start gets its
+publishers' offered QoS in the bag (as `ros2 bag record` writes it) when they are first seen:
+by the discovery timer, or at its first message, which is written at once either way. Relative
+topic names resolve in the node's namespace, as the loop's publishers' do. SIGINT and SIGTERM
+close the bag cleanly; the bag format itself is in `tsr_koopman_ctrl.bag`.
 """
 
 import datetime
@@ -96,6 +98,8 @@ class RecorderNode(Node):
         self.discover()
 
     def discover(self):
+        for topic in list(self.writer.qos_pending):
+            self.learn_qos(topic)
         if len(self.subscribed) == len(self.wanted):
             return
         types = dict(self.get_topic_names_and_types())
@@ -107,13 +111,26 @@ class RecorderNode(Node):
                 continue
             self.subscribe(topic, types[topic][0], publishers)
 
+    def learn_qos(self, topic):
+        """Give a topic subscribed before its publishers were known their offered QoS, once
+        they are (else it stays pending: the writer then writes the channel without QoS)."""
+        publishers = self.get_publishers_info_by_topic(topic)
+        if publishers:
+            self.writer.set_offered_qos(topic, [offered_qos(p) for p in publishers])
+
+    def record(self, topic, data):
+        if topic in self.writer.qos_pending:      # first message before the timer saw them
+            self.learn_qos(topic)
+        self.writer.write(topic, data, self.get_clock().now().nanoseconds)
+
     def subscribe(self, topic, type_name, publishers, latched=False):
         """Subscribe raw; with no publisher known yet: reliable, and volatile (matches any)
         unless `latched` (the loop's latched topics, whose publishers are transient local)."""
         qos = [offered_qos(p) for p in publishers]
         self.writer.add_topic(definitions.TopicInfo(
             name=topic, type=type_name, definition=definitions.message_definition(type_name),
-            type_hash=definitions.type_hash(type_name), offered_qos=qos))
+            type_hash=definitions.type_hash(type_name), offered_qos=qos),
+            qos_pending=not publishers)
         latched = latched or bool(publishers) and all(
             p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
         profile = QoSProfile(
@@ -123,8 +140,7 @@ class RecorderNode(Node):
             profile.reliability = ReliabilityPolicy.BEST_EFFORT
         self.subscribed[topic] = self.create_subscription(
             message_class(type_name), topic,
-            lambda data, t=topic: self.writer.write(t, data, self.get_clock().now().nanoseconds),
-            profile, raw=True)
+            lambda data, t=topic: self.record(t, data), profile, raw=True)
         self.get_logger().info(f'recording {topic} [{type_name}]')
 
     def check_silence(self):
@@ -151,6 +167,9 @@ class RecorderNode(Node):
                 'FASTDDS_BUILTIN_TRANSPORTS=UDPv4)')
 
     def close(self):
+        if self.context.ok():          # publishers that appeared since the last timer tick
+            for topic in list(self.writer.qos_pending):
+                self.learn_qos(topic)
         self.writer.close()
         counts = ', '.join(f'{t}: {n}' for t, n in self.writer.topic_counts.items())
         print(f'[tsr_recorder] bag {self.writer.directory} closed: '

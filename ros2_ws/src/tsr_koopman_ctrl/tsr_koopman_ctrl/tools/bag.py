@@ -4,18 +4,19 @@
     python -m tsr_koopman_ctrl.tools.bag recover BAG [--out DIR | --in-place]
     (installed as `bag`: ros2 run tsr_koopman_ctrl bag info BAG)
 
-`info` reads every file (not only metadata.yaml, which lags the files of a killed bag) and prints
-files with their state, topics with types and counts, start and duration, and what metadata.yaml
-says. `recover` (like `ros2 bag reindex` / `mcap recover`) reads each file as `BagReader` does
-(every complete chunk, and of a chunk cut short its complete zstd blocks; what was still in the
-writer's memory never reached the file) and writes it anew, with the same name, complete and
-indexed: the same schemas, channels (QoS and type hash in their metadata), log and publish
-times, sequence numbers and order, plus a metadata.yaml with the true counts. It prints one line:
-messages kept per topic, and from which files. Output: `<BAG>_recovered` next to the bag, or
---out; --in-place writes to a temporary directory next to the bag first, then replaces the
-bag's files one by one (os.replace) and metadata.yaml last, removes files that hold no message,
-and refuses a bag with a corrupt or non-MCAP file (their unreadable bytes would be lost).
-Errors: one line, exit status 2.
+`info` (a bag directory or one .mcap file) reads every file (not only metadata.yaml, which lags
+the files of a killed bag) and prints files with their state, every topic with its type and count
+(0 included), start and duration, and what metadata.yaml says. `recover` (like `ros2 bag
+reindex` / `mcap recover`) takes a bag directory (its output is a bag, which one file of a split
+bag is not), reads each file as `BagReader` does (every complete chunk, and of a chunk cut short
+its complete zstd blocks; what was still in the writer's memory never reached the file) and
+writes it anew, with the same name, complete and indexed: the same schemas, channels (QoS and
+type hash in their metadata), log and publish times, sequence numbers and order, plus a
+metadata.yaml with the true counts. It prints one line: messages kept per topic, and from which
+files. Output: `<BAG>_recovered` next to the bag, or --out; --in-place writes to a temporary
+directory next to the bag first, then replaces the bag's files one by one (os.replace) and
+metadata.yaml last, removes files that hold no message, and refuses a bag with a corrupt or
+non-MCAP file (their unreadable bytes would be lost). Errors: one line, exit status 2.
 """
 
 import argparse
@@ -58,6 +59,11 @@ class Recovered:
 def recover(bag, out=None, in_place=False):
     """Write the readable messages of `bag` as a complete bag (see the module docstring)."""
     bag = os.path.normpath(bag)
+    if os.path.isfile(bag):
+        # As `ros2 bag reindex`: the output is a bag (its metadata.yaml lists all its files),
+        # which one file of a split bag is not.
+        raise ValueError(f'recover takes a bag directory, not a file: {bag} (its bag: '
+                         f'{os.path.dirname(bag) or "."})')
     if not os.path.isdir(bag):
         raise FileNotFoundError(f'no bag directory at {bag}')
     BagReader(bag)                     # one line if there is nothing to recover
@@ -145,10 +151,9 @@ def _check_written(path, count):
 def info(bag):
     """Lines describing `bag` as read (files, topics, counts, time) and its metadata.yaml."""
     reader = BagReader(bag)
-    topics, first, last = {}, None, None
+    counts, first, last = {}, None, None
     for msg in reader.messages():
-        entry = topics.setdefault(msg.topic, [msg.type, 0])
-        entry[1] += 1
+        counts[msg.topic] = counts.get(msg.topic, 0) + 1
         first = msg.log_time_ns if first is None else min(first, msg.log_time_ns)
         last = msg.log_time_ns if last is None else max(last, msg.log_time_ns)
     report = reader.report
@@ -158,9 +163,10 @@ def info(bag):
              f'start:      {start.isoformat()} ({first} ns)',
              f'duration:   {(last - first) / 1e9:.3f} s',
              'topics:']
-    width = max(len(name) for name in topics)
-    lines += [f'  {name:<{width}}  {type_name}  {count}'
-              for name, (type_name, count) in topics.items()]
+    # Every topic with a channel, in the bag's order: one without messages is part of the bag.
+    width = max(len(name) for name in reader.topics)
+    lines += [f'  {name:<{width}}  {type_name}  {counts.get(name, 0)}'
+              for name, type_name in reader.topics.items()]
     lines += ['files:'] + [f'  {f.line()}' for f in report.files]
     lines.append(f'{METADATA_FILE}: {_metadata_line(bag, report)}')
     return lines
@@ -191,9 +197,9 @@ def parser():
     p = _Parser(prog='bag', description=__doc__.split('\n\n')[0])
     commands = p.add_subparsers(dest='command', required=True)
     info_cmd = commands.add_parser('info', help='files, topics, counts, duration, file states')
-    info_cmd.add_argument('bag')
+    info_cmd.add_argument('bag', help='bag directory or one .mcap file')
     rec = commands.add_parser('recover', help='a complete, indexed bag from a killed one')
-    rec.add_argument('bag')
+    rec.add_argument('bag', help='bag directory')
     where = rec.add_mutually_exclusive_group()
     where.add_argument('--out', help='output bag directory (default: <BAG>_recovered)')
     where.add_argument('--in-place', action='store_true',
