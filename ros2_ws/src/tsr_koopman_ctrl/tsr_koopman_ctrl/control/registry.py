@@ -32,9 +32,10 @@ def make_controller(name, settings=None, observer=None, **overrides):
 
 
 def preset(name, sections=None):
-    """{law: {setting: value}} of a settings preset: a parameter file (`ros__parameters` with a
-    section per law, or `law.setting` keys), given by path or by name under the installed
-    config/ ('untuned': the settings before tuning). The laws' defaults are the tuned settings.
+    """{law: {setting: value}} of a settings preset (and of the `sections` asked for): a
+    parameter file (`ros__parameters` with a section per law, or `law.setting` keys), given by
+    path or by name under the installed config/ ('untuned': the settings before tuning). The
+    laws' defaults are the tuned settings.
     `sections`: {name: settings class} of other sections the caller applies too (deploy: the
     observer and the excitation). Anything else in the file, a setting a law does not have, or
     a value of the wrong type or range is one ValueError line naming the file."""

@@ -71,7 +71,8 @@ def compare(laws, presets, steps, theta_max=None):
     defaults_shown = set()
     for name in dict.fromkeys(presets):     # each preset once, in the order given
         values = {} if name == 'tuned' else preset(name)
-        if name != 'tuned' and not set(values) & set(laws) | NOT_TUNED & set(laws):
+        named, shown_anyway = set(values) & set(laws), NOT_TUNED & set(laws)
+        if name != 'tuned' and not (named or shown_anyway):
             raise ValueError(f'--presets {name}: sets none of the laws compared '
                              f'({list(laws)}), only {sorted(values)}')
         for law in laws:
