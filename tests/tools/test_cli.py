@@ -116,6 +116,8 @@ def params(tmp_path, text):
     ('deploy', '--plant', 'mass: -5.0', 'Scale.mass must be a finite number > 0, got -5.0'),
     ('deploy', '--plant', 'actuator_gain: 200.0', 'actuator_gain must be in [0.001, 100]'),
     ('deploy', '--plant', 'actuator_lag: fast', 'actuator_lag must be a number'),
+    ('deploy', '--plant', 'substeps: 0', 'substeps must be in [1, 10000], got 0'),
+    ('deploy', '--plant', 'seed: 1.5', 'seed must be an integer, got 1.5'),
 ])
 def test_a_bad_preset_or_plant_file_is_one_line_and_status_2(tool, option, text, message,
                                                              tmp_path, monkeypatch, capsys):

@@ -294,11 +294,14 @@ def check_plant_parameter_values(values, source):
         spec = PLANT_PARAMETERS.get(name) or SIMULATOR_PARAMETERS.get(name)
         if spec is None:
             continue
-        _, _, low, high = spec
+        default, _, low, high = spec
         if low is None and high is None:
             continue
-        if not isinstance(value, numbers.Real) or isinstance(value, bool):
-            raise ValueError(f'{source}: {name} must be a number, got {value!r}')
+        integer = isinstance(default, int) and not isinstance(default, bool)
+        if (not isinstance(value, numbers.Integral if integer else numbers.Real)
+                or isinstance(value, bool)):
+            raise ValueError(f"{source}: {name} must be {'an integer' if integer else 'a number'}"
+                             f', got {value!r}')
         if not low <= value <= high:
             raise ValueError(f'{source}: {name} must be in [{low:g}, {high:g}], got {value!r}')
     try:
