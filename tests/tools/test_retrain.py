@@ -155,6 +155,13 @@ def test_a_bag_both_trained_on_and_held_out_is_refused(bags, tmp_path, capsys):
     assert code == 2 and err == (f'retrain: {small} has the same content as the held-out bag '
                                  f'{recovered}: a bag is trained on or held out, not both\n')
     assert not (tmp_path / 'm').exists()
+    # Held out twice under two names: its windows would count twice in the scores.
+    code, _, err = run(capsys, '--bags', a, '--held-out', small, recovered, '--out',
+                       tmp_path / 'm', '--config-json', json.dumps(TINY))
+    assert code == 2 and err.splitlines() == [
+        f'retrain: {recovered}: same messages (sha256 {err.split("sha256 ")[1][:12]}) as '
+        f'{small}, given twice', 'retrain: 1 bad bags (--skip-bad skips them)']
+    assert not (tmp_path / 'm').exists()
 
 
 def test_bad_bags_are_named_and_exit_2_or_skipped(bags, tmp_path, capsys):

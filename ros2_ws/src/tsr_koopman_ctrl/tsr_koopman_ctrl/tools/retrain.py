@@ -287,7 +287,9 @@ def _check(train_paths, held_paths, train, held, skip_bad):
                 bad.append((kind, index, s))
                 continue
             digest = _identity(s)
-            if digest in seen and kind == 'training':
+            # Training bags were checked against held-out ones above, so a repeat here is a
+            # bag given twice as training or twice as held-out (counted twice in the scores).
+            if digest in seen:
                 bad.append((kind, index, f'{paths[index]}: same messages (sha256 {digest[:12]}) '
                             f'as {seen[digest]}, given twice'))
             seen.setdefault(digest, paths[index])
