@@ -4,12 +4,13 @@ section's ros__parameters, or one error line naming the file."""
 import re
 
 
-def _load(path):
-    """The YAML documents of `path` (ValueError '<path>: why' if it cannot be read as YAML)."""
+def _load(path, compose=False):
+    """The YAML documents of `path`, as values or (`compose`) as node trees, which keep the
+    quoting rcl types by (ValueError '<path>: why' if it cannot be read as YAML)."""
     import yaml
     try:
         with open(path) as stream:
-            return list(yaml.safe_load_all(stream))
+            return list(yaml.compose_all(stream) if compose else yaml.safe_load_all(stream))
     except OSError as error:
         raise ValueError(f'{path}: {error.strerror}') from None
     except UnicodeDecodeError:
@@ -117,15 +118,10 @@ def params_file_problem(argv):
             if not all(document is None or isinstance(document, dict)
                        for document in documents):
                 return f'--params-file {path}: not a parameter file (<node>: ros__parameters: ...)'
-            for document in _compose(path):
+            # Read again as node trees (a valid file by now): rcl types list elements by their
+            # quoting, which the values above have lost.
+            for document in _load(path, compose=True):
                 problem = document is not None and _structure_problem(document)
                 if problem:
                     return f'--params-file {path}: {problem}'
     return None
-
-
-def _compose(path):
-    """The YAML documents of `path` as node trees (quoting kept: rcl types by it)."""
-    import yaml
-    with open(path) as stream:
-        return list(yaml.compose_all(stream))

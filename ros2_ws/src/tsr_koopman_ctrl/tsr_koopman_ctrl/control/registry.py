@@ -73,7 +73,6 @@ def preset(name, sections=None):
                              f"({', '.join(sorted(classes))})")
         if not isinstance(values, dict):
             raise ValueError(f'{path}: {section} is not a section of settings')
-        values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
         try:
             build(classes[section], None, values)
         except ValueError as error:      # one line: a setting it lacks, a type or a range

@@ -107,13 +107,18 @@ class KoopmanConfig:
         return self.lift_dim + self.state_dim
 
     @classmethod
-    def from_dict(cls, values):
-        known = {f.name for f in dataclasses.fields(cls)}
+    def current_options(cls, values):
+        """(`values` without retired options at their "off" value, the sorted names among them
+        that are no config field)."""
         values = {k: v for k, v in values.items()
                   if not (k in RETIRED_OPTIONS and v == RETIRED_OPTIONS[k])}
-        unknown = set(values) - known
+        return values, sorted(set(values) - {f.name for f in dataclasses.fields(cls)})
+
+    @classmethod
+    def from_dict(cls, values):
+        values, unknown = cls.current_options(values)
         if unknown:
-            raise ValueError(f'unknown config keys {sorted(unknown)}')
+            raise ValueError(f'unknown config keys {unknown}')
         values = dict(values)
         if 'tension_range' in values:
             values['tension_range'] = tuple(values['tension_range'])

@@ -140,13 +140,11 @@ def _overrides(text):
         raise UsageError(f'--config-json: {error}')
     if not isinstance(values, dict):
         raise UsageError('--config-json: not a JSON object')
-    # A retired option at its "off" value means nothing (model_file.KoopmanConfig.from_dict).
-    values = {k: v for k, v in values.items()
-              if not (k in model_file.RETIRED_OPTIONS and v == model_file.RETIRED_OPTIONS[k])}
-    # Named here, before any other check could read an unknown key as a changed one.
-    known = sorted(f.name for f in dataclasses.fields(model_file.KoopmanConfig))
-    unknown = sorted(set(values) - set(known))
+    # Named here, before any other check could read an unknown key as a changed one; a
+    # retired option at its "off" value means nothing, as in a model file.
+    values, unknown = model_file.KoopmanConfig.current_options(values)
     if unknown:
+        known = sorted(f.name for f in dataclasses.fields(model_file.KoopmanConfig))
         raise UsageError(f'--config-json: unknown field{"s" if len(unknown) > 1 else ""} '
                          f'{", ".join(unknown)} (known: {", ".join(known)})')
     return values
