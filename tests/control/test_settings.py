@@ -5,7 +5,8 @@ import dataclasses
 import pytest
 
 from tsr_koopman_ctrl.control import CONTROLLERS, KoopmanMpc, LinearisedLqr, make_controller
-from tsr_koopman_ctrl.control.settings import parse_value
+from tsr_koopman_ctrl.control.offset_free import ObserverSettings
+from tsr_koopman_ctrl.control.settings import parse_value, unknown_setting_names
 
 
 def test_every_law_has_described_settings():
@@ -30,6 +31,22 @@ def test_bad_settings_are_one_line_naming_the_setting(law, overrides, message):
     with pytest.raises(ValueError, match=message.replace('(', r'\(')) as error:
         make_controller(law, **overrides)
     assert '\n' not in str(error.value)
+
+
+def test_a_parameter_naming_no_setting_of_its_section_is_found():
+    sections = {name: law.Settings for name, law in CONTROLLERS.items()}
+    sections['observer'] = ObserverSettings
+    given = {'koopman_mpc.horizn', 'koopman_mpc.horizon', 'linear_lqr.q', 'linear_lqr.zeta',
+             'observer.disturbnce', 'rate_hz', 'tsr_sim.anything', 'controller'}
+    assert unknown_setting_names(given, sections) == [
+        "parameter 'koopman_mpc.horizn': koopman_mpc has no setting 'horizn' (did you mean "
+        "'koopman_mpc.horizon'?)",
+        "parameter 'linear_lqr.zeta': linear_lqr has no setting 'zeta'",
+        "parameter 'observer.disturbnce': observer has no setting 'disturbnce' (did you mean "
+        "'observer.disturbance'?)"]
+    every_setting = {f'{name}.{field.name}' for name, cls in sections.items()
+                     for field in dataclasses.fields(cls)}
+    assert unknown_setting_names(every_setting, sections) == []
 
 
 def test_settings_reach_the_law_and_the_loop_limits_stay_apart():

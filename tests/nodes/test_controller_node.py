@@ -116,7 +116,14 @@ def test_a_missing_params_file_fails_at_start_with_one_line(start_node, tmp_path
      'koopman_mpc.horizon'),
     ({'controller': 'linear_lqr', 'linear_lqr': {'q': [1.0, 2.0]}},
      'linear_lqr.q needs 4 numbers'),
-    ({'controller': 'pid'}, "unknown controller 'pid'")])
+    ({'controller': 'pid'}, "unknown controller 'pid'"),
+    # ROS drops a parameter no one declares: a misspelt setting, of the running law or not.
+    ({'controller': 'koopman_mpc', 'koopman_mpc': {'horizn': 8}},
+     "parameter 'koopman_mpc.horizn': koopman_mpc has no setting 'horizn' (did you mean "
+     "'koopman_mpc.horizon'?)"),
+    ({'controller': 'linear_lqr', 'koopman_mpc': {'horizn': 8}}, "'koopman_mpc.horizn'"),
+    ({'controller': 'linear_lqr', 'observer': {'disturbnce': 'none'}},
+     "observer has no setting 'disturbnce'")])
 def test_bad_controller_configuration_fails_at_start_with_one_line(start_node, tmp_path,
                                                                    params, message):
     proc = start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller', params)

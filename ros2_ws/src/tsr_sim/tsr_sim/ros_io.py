@@ -49,6 +49,12 @@ def declare(node, name, default, description, low=None, high=None, step=None):
     return node.declare_parameter(name, default, descriptor).value
 
 
+def given_parameter_names(node):
+    """The names of the parameters given to `node` (--params-file, -p), declared or not. rclpy
+    keeps them in Node._parameter_overrides only; Jazzy has no public accessor."""
+    return set(node._parameter_overrides)
+
+
 def declare_scale(node):
     """Declare orbit_rate, tether_length and mass (every node converting units needs them)."""
     return Scale(

@@ -4,6 +4,7 @@ description and range. The controller node's parameters (``<law>.<field>``), the
 """
 
 import dataclasses
+import difflib
 import math
 import numbers
 
@@ -116,6 +117,26 @@ def build(settings_class, settings=None, overrides=None):
         raise ValueError(f'{law_name(settings_class)} has no setting {unknown[0]!r}; '
                          f'settings: {sorted(known)}')
     return dataclasses.replace(base, **overrides)
+
+
+def unknown_setting_names(names, sections):
+    """Lines naming each of `names` (parameter names given to a node) that starts with one of
+    `sections` ({section: settings class}, e.g. the laws, 'observer') but names none of that
+    section's settings. ROS drops a parameter no node declares without a word, so a misspelt
+    `koopman_mpc.horizn` would deploy the default horizon. Names of other sections, or of none,
+    are left alone: a shared `/**` file holds other nodes' parameters too."""
+    problems = []
+    for name in sorted(names):
+        section, dot, setting_name = name.partition('.')
+        if not dot or section not in sections:
+            continue
+        known = [field.name for field in dataclasses.fields(sections[section])]
+        if setting_name not in known:
+            close = difflib.get_close_matches(setting_name, known, n=1)
+            hint = f" (did you mean '{section}.{close[0]}'?)" if close else ''
+            problems.append(f"parameter '{name}': {section} has no setting "
+                            f"'{setting_name}'{hint}")
+    return problems
 
 
 def parse_value(settings_class, name, text):

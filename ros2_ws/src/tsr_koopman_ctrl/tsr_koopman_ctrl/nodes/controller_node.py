@@ -14,7 +14,9 @@ last step, the one sent before any state passed for step 0's answer). A state re
 late, e.g. behind a slow first solve) gets the command it already got, resent, without running
 the law again: a second compute would advance the law's plan and observer twice for one step.
 Each state's outcome and the law's compute time go out on `tsr/controller_status` (recorded in
-the bag). A bad law, setting or model stops the node at start with one line (exit 2).
+the bag). A bad law, setting or model stops the node at start with one line (exit 2), and so
+does a parameter under a law's, `observer.` or `excitation.` that names no setting there (ROS
+would drop it without a word); parameters of other sections are left to the nodes they are for.
 """
 
 from collections import deque
@@ -29,8 +31,8 @@ import numpy as np
 from rclpy.node import Node
 from tsr_msgs.msg import ControllerStatus, Excitation, RunInfo, TensionCommand, TsrState
 from tsr_sim import dynamics
-from tsr_sim.ros_io import (declare, declare_scale, LATCHED_QOS, LOOP_PUBLISHER_QOS, LOOP_QOS,
-                            run_node)
+from tsr_sim.ros_io import (declare, declare_scale, given_parameter_names, LATCHED_QOS,
+                            LOOP_PUBLISHER_QOS, LOOP_QOS, run_node)
 from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, NO_STEP, RUN_INFO_TOPIC,
                           run_info_msg, scale_dict, STATE_TOPIC, state_from_msg, TENSION_TOPIC,
                           tension_msg)
@@ -40,7 +42,7 @@ from tsr_koopman_ctrl.control.excitation import Excitation as ExcitationSource
 from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings
 from tsr_koopman_ctrl.control.registry import law_class
-from tsr_koopman_ctrl.control.settings import fields
+from tsr_koopman_ctrl.control.settings import fields, unknown_setting_names
 from tsr_koopman_ctrl.model.model_file import WEIGHTS_FILE
 
 DEFAULT_CONTROLLER = 'koopman_mpc'
@@ -63,6 +65,12 @@ class ControllerNode(Node):
 
     def __init__(self):
         super().__init__('tsr_controller')
+        # A misspelt setting would be dropped by ROS and the law deployed with its default.
+        sections = {name: law.Settings for name, law in CONTROLLERS.items()}
+        sections.update(observer=ObserverSettings, excitation=ExcitationSettings)
+        problems = unknown_setting_names(given_parameter_names(self), sections)
+        if problems:
+            raise ValueError('; '.join(problems))
         self.law_name = declare(self, 'controller', DEFAULT_CONTROLLER,
                                 f'control law: one of {sorted(CONTROLLERS)}')
         settings_class = law_class(self.law_name).Settings
