@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import numpy as np
 import pytest
 
 from tsr_koopman_ctrl.control import CONTROLLERS, KoopmanMpc, LinearisedLqr, make_controller
@@ -72,3 +73,34 @@ def test_closed_loop_refuses_a_step_count_that_is_not_a_whole_number(steps):
     from tsr_koopman_ctrl.control import closed_loop
     with pytest.raises(ValueError, match='closed_loop: steps must be an integer >= 0'):
         closed_loop(make_controller('linear_lqr'), [0.0, 0.0, -0.99, 0.5], steps)
+
+
+def test_closed_loop_takes_a_plant_variant_by_name():
+    from tsr_koopman_ctrl.control import closed_loop
+    from tsr_sim.plant import plant_parameters
+    law = make_controller('linear_lqr')
+    by_name = closed_loop(law, [0.0, 0.0, -0.99, 0.5], 50, plant='actuator_weak')
+    by_mapping = closed_loop(law, [0.0, 0.0, -0.99, 0.5], 50,
+                             plant=plant_parameters('actuator_weak'))
+    nominal = closed_loop(law, [0.0, 0.0, -0.99, 0.5], 50)
+    np.testing.assert_array_equal(by_name[0], by_mapping[0])
+    assert not np.array_equal(by_name[0], nominal[0])
+    with pytest.raises(ValueError, match='closed_loop: plant must be a mapping'):
+        closed_loop(law, [0.0, 0.0, -0.99, 0.5], 5, plant=[('mass', 2.0)])
+
+
+@pytest.mark.parametrize('law', ['linear_lqr', 'fractional_pd', 'koopman_lqr', 'koopman_mpc'])
+@pytest.mark.parametrize('observer', [None, {'disturbance': 'none'}])
+@pytest.mark.parametrize('state, message', [
+    ([0.0, 0.0, -0.99], 'a TSR state has 4 (planar) or 6 (3-D) components, got 3'),
+    ([0.0, 0.0, -0.99, 0.5, 0.0], 'a TSR state has 4 (planar) or 6 (3-D) components, got 5'),
+    ([[0.0, 0.0, -0.99, 0.5]], 'a TSR state is one vector of 4 or 6 components, got shape'),
+    ([float('nan'), 0.0, -0.99, 0.5], 'is not finite: no tension for it')])
+def test_a_bad_state_is_refused_and_leaves_the_law_as_it_was(law, observer, state, message):
+    """A wrong vector gave a plausible tension (the offset-free wrapper cut it to 4 and its
+    filter took 3); a NaN gave a finite one and every later command was NaN."""
+    good = [0.0, 0.0, -0.99, 0.5]
+    fresh, used = (make_controller(law, observer=observer) for _ in range(2))
+    with pytest.raises(ValueError, match=message.replace('(', r'\(').replace(')', r'\)')):
+        used.compute(state)
+    assert [used.compute(good) for _ in range(3)] == [fresh.compute(good) for _ in range(3)]

@@ -58,6 +58,12 @@ def test_no_frontier_for_an_untabulated_start():
     assert table_entry(np.array(COMPARISON_STARTS[0])) is not None   # numpy start found
 
 
+@pytest.mark.parametrize('swing', [float('nan'), -0.1, float('inf')])
+def test_a_swing_that_is_not_an_angle_is_refused(swing):
+    with pytest.raises(ValueError, match='swing must be a finite angle >= 0'):
+        frontier_tau(COMPARISON_STARTS[0], swing)     # was NaN, or a number for -0.1
+
+
 def test_show_prints_the_table_and_bad_input_is_one_line(capsys):
     assert tool.main(['--show']) == 0
     out = capsys.readouterr().out

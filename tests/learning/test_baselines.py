@@ -78,3 +78,26 @@ def test_edmd_stabilised_clips_the_spectrum():
     a = np.array([[1.2, 0.3], [0.0, 0.5]])
     clipped = baselines.clip_spectrum(a)
     assert sorted(np.abs(np.linalg.eigvals(clipped))) == pytest.approx([0.5, 1.0])
+
+
+@pytest.mark.parametrize('make', [lambda: baselines.Edmd(lift_dim=6),
+                                  lambda: baselines.Sindy(degree=2)])
+def test_bad_use_of_a_baseline_is_one_line(make):
+    """Were AttributeErrors, a broadcast error or an IndexError."""
+    data = linear_system_data(20)
+    name = type(make()).__name__
+    with pytest.raises(ValueError, match=f'{name}.predict before fit: call fit'):
+        make().predict(data.x[:, 0], data.u)
+    with pytest.raises(ValueError, match=rf'{name}.fit takes a Dataset .* got ndarray'):
+        make().fit(data.x)
+    model = make().fit(data)
+    with pytest.raises(ValueError, match=r'predict takes x0 \(N, 4\) and u \(N, T\), got x0 '
+                       r'\(20, 3\)'):
+        model.predict(data.x[:, 0, :3], data.u)
+    one = model.predict(data.x[0, 0], data.u[0])        # one start as 1-D, as LiftedModel's
+    np.testing.assert_allclose(one[0], model.predict(data.x[:1, 0], data.u[:1])[0])
+
+
+def test_edmd_needs_at_least_one_observable():
+    with pytest.raises(ValueError, match='Edmd: lift_dim must be an integer >= 1, got 0'):
+        baselines.Edmd(lift_dim=0)

@@ -153,3 +153,22 @@ def test_the_node_declares_the_parameters_of_the_tables_and_nothing_else(ros, st
     declared = set(future.result().result.names)
     assert declared == {*PLANT_PARAMETERS, *SCALE_PARAMETERS, *SIMULATOR_PARAMETERS,
                         'use_sim_time', 'start_type_description_service'}
+
+
+def test_a_given_name_close_to_a_declared_one_is_warned_of(start_node, tmp_path):
+    """ROS drops a parameter a node does not declare: `mas: 22` would simulate the nominal
+    mass without a word. A name close to a declared one is a warning; other nodes' names (a
+    shared /** file) and dotted names stay quiet."""
+    import time
+    start_node('tsr_sim', 'sim_node', 'tsr_sim',
+               dict(SIM_PARAMS, mas=22.0, state_timeout=1.0, koopman_mpc={'horizon': 8}))
+    log = tmp_path / 'tsr_sim.log'
+    deadline = time.monotonic() + 30.0
+    while 'did you mean' not in (text := log.read_text() if log.exists() else ''):
+        assert time.monotonic() < deadline, f'no warning in the log:\n{text}'
+        time.sleep(0.2)
+    time.sleep(0.5)     # the node warns of every name at once: any other would follow now
+    text = log.read_text()
+    assert "parameter 'mas' is not one of this node's and was ignored (did you mean " \
+        "'mass'?)" in text
+    assert 'state_timeout' not in text and 'koopman_mpc' not in text

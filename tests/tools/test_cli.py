@@ -65,6 +65,7 @@ def run_tool(tool, argv):
     ('retrain', ['--out', 'm', '--learning-rate', 'nan'], "'nan' is not a finite number"),
     ('retrain', ['--out', '{bag_dir}'], 'bag is a bag directory, not a model directory'),
     ('evaluate', ['--sweep-epochs', '0'], 'argument --sweep-epochs: 0 must be >= 1'),
+    ('evaluate', ['--model', 'no_such_model', '--out', 'ev'], 'no_such_model: no such model'),
     ('loop', ['--plant', 'actuator_weak', '--rounds', '0'], 'argument --rounds: 0 must be >= 1'),
     ('loop', ['--plant', 'no_such_plant'], "no plant variant 'no_such_plant'"),
     ('loop', ['--plant', 'actuator_weak', '--model', 'no_such_model'], 'no such model'),
@@ -79,6 +80,33 @@ def test_a_bad_option_is_one_usage_line_and_status_2(tool, argv, message, text_f
     # Nothing written besides the fixtures' files.
     assert sorted(p.name for p in tmp_path.iterdir()) == ['bad.yaml', 'bag', 'notes.txt']
     assert [p.name for p in bag_dir.iterdir()] == ['metadata.yaml']
+
+
+@pytest.mark.parametrize('tool', ['train', 'retrain'])
+def test_a_model_already_in_out_is_not_replaced_without_overwrite(tool, tmp_path, monkeypatch,
+                                                                  capsys):
+    """A mistyped --out (models/koopman_default) replaced a shipped model without a word."""
+    import shutil
+
+    from tsr_koopman_ctrl.model import shipped
+    out = tmp_path / 'model'
+    shutil.copytree(shipped.resolve('koopman_default'), out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    monkeypatch.chdir(tmp_path)
+    argv = ['--out', out] + (['--bags', tmp_path] if tool == 'retrain' else [])
+    assert run_tool(tool, argv) == 2
+    err = capsys.readouterr().err
+    assert f'--out {out} already holds a model' in err and '--overwrite' in err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_retrain_checks_a_given_anchor_before_reading_bags(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert run_tool('retrain', ['--out', 'm', '--bags', tmp_path / 'no_bags',
+                                '--anchor', '7']) == 2
+    err = capsys.readouterr().err
+    assert 'bad --anchor: anchor_tension must lie in tension_range' in err, err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_tune_leaves_a_storage_file_that_is_not_a_journal_alone(text_file, capsys):
@@ -105,14 +133,14 @@ def params(tmp_path, text):
     ('deploy', '--preset', 'koopman_mpc: {horizn: 8}', "koopman_mpc has no setting 'horizn'"),
     ('deploy', '--preset', 'koopman_mpc.horizn: 8', "koopman_mpc has no setting 'horizn'"),
     ('deploy', '--preset', 'koopman_mcp: {horizon: 8}',
-     "'koopman_mcp' is not a section a preset can hold (excitation, fractional_pd,"),
+     "'koopman_mcp' is not a section a preset can hold here (excitation, fractional_pd,"),
     ('deploy', '--preset', 'controller: linear_lqr', "'controller' is not a section a preset"),
     ('deploy', '--preset', 'koopman_mpc: {horizon: abc}',
      "koopman_mpc.horizon must be an integer, got 'abc'"),
     ('deploy', '--preset', 'linear_lqr: {q: [1, 2, x, 4]}', 'linear_lqr.q must be 4 numbers'),
     ('compare', '--presets', 'koopman_mpc: {horizn: 8}', "koopman_mpc has no setting 'horizn'"),
     ('compare', '--presets', 'observer: {disturbance: none}',
-     "'observer' is not a section a preset can hold (fractional_pd,"),
+     "'observer' is not a section a preset can hold here (fractional_pd,"),
     ('deploy', '--plant', 'mass: -5.0', 'Scale.mass must be a finite number > 0, got -5.0'),
     ('deploy', '--plant', 'actuator_gain: 200.0', 'actuator_gain must be in [0.001, 100]'),
     ('deploy', '--plant', 'actuator_lag: fast', 'actuator_lag must be a number'),

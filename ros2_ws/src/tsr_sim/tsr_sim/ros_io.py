@@ -4,6 +4,7 @@ Kept apart from the ROS-free core (dynamics, units, plant, wire) so that the cor
 rclpy. Topic names and message <-> array conversion are in `tsr_sim.wire`.
 """
 
+import difflib
 import signal
 import sys
 import time
@@ -55,6 +56,19 @@ def given_parameter_names(node):
     return set(node._parameter_overrides)
 
 
+def warn_near_misses(node):
+    """Warn of each top-level parameter given to `node` that it does not declare but that is
+    close to one it does (`controler`, `mas`): ROS drops it without a word. Others stay quiet:
+    a shared `/**` file holds other nodes' parameters. Dotted names are the nodes' own business
+    (the controller refuses a misspelt law setting)."""
+    declared = [name for name in node.list_parameters([], 0).names if '.' not in name]
+    for name in sorted(given_parameter_names(node) - set(declared)):
+        close = difflib.get_close_matches(name, declared, n=1, cutoff=0.8)
+        if '.' not in name and close:
+            node.get_logger().warning(f"parameter '{name}' is not one of this node's and was "
+                                      f"ignored (did you mean '{close[0]}'?)")
+
+
 def declare_scale(node):
     """Declare orbit_rate, tether_length and mass (every node converting units needs them)."""
     return Scale(
@@ -85,7 +99,9 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     handed over (the recorder's bag then holds every message acknowledged before the stop).
     Then `on_exit(node)` and clean-up; exit code 0. A node whose `done` attribute a callback
     sets ends the run the same way (an exception out of a callback would be logged as fatal).
-    A bad parameter (out of range, wrong type, invalid value) or model while constructing, or
+    A parameter given but not declared that is close to a declared one is a warning
+    (`warn_near_misses`). A bad parameter (out of range, wrong type, invalid value) or model
+    while constructing, or
     a --params-file that cannot be read (`parameter_file.params_file_problem`, checked before
     rcl would log its own [ERROR] line), is one clear line on stderr and exit code 2.
     """
@@ -112,6 +128,7 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
         print(f'cannot start: {err}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return 2
+    warn_near_misses(node)
     executor = EventsExecutor()
     executor.add_node(node)
     try:

@@ -6,7 +6,7 @@ from typing import ClassVar
 import numpy as np
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.law import Law, planar_state
 from tsr_koopman_ctrl.control.settings import LawSettings, setting
 
 
@@ -52,7 +52,7 @@ class FractionalOrderPd(Law):
         self.history = None
 
     def compute(self, x):
-        x = np.asarray(x, dtype=float)
+        x = planar_state(x)
         signal = self.d_theta * x[dynamics.THETA] + self.d_l * x[dynamics.LENGTH_OFFSET]
         if self.history is None:
             self.history = np.full(len(self.weights), signal)

@@ -5,7 +5,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.law import Law, planar_state
 from tsr_koopman_ctrl.control.lqr import discrete_lqr_gain, state_cost_matrix
 from tsr_koopman_ctrl.control.settings import cross_weight_setting, LawSettings, setting
 from tsr_koopman_ctrl.model.lifted import LiftedModel
@@ -68,7 +68,7 @@ class KoopmanLqr(Law):
         self.z_ref, self.u_hat_ref = self.model.reference()
 
     def compute(self, x):
-        planar = np.asarray(x, dtype=float)[:self.model.n]
+        planar = planar_state(x)
         u_hat = self.u_hat_ref - float(self.gain @ (self.model.psi_x(planar) - self.z_ref))
         return self.model.tension_from_input(planar, u_hat)
 

@@ -8,7 +8,7 @@ import scipy.linalg
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control.koopman_lqr import lifted_state_weight, load_model
-from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.law import Law, planar_state
 from tsr_koopman_ctrl.control.lqr import discrete_lqr_gain, prediction_matrices
 from tsr_koopman_ctrl.control.settings import cross_weight_setting, LawSettings, setting
 from tsr_koopman_ctrl.model.shipped import DEFAULT_MODEL
@@ -156,7 +156,7 @@ class KoopmanMpc(Law):
         self.last_tension = None
 
     def compute(self, x):
-        planar = np.asarray(x, dtype=float)[:self.model.n]
+        planar = planar_state(x)
         e0 = self.model.psi_x(planar) - self.z_ref
         gain = float(self.model.psi_ux(planar))
         n_steps, settings = self.horizon, self.settings

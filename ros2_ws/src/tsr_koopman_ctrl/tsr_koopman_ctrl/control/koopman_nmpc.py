@@ -39,7 +39,7 @@ import numpy as np
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control.koopman_lqr import load_model
-from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.law import Law, planar_state
 from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
 from tsr_koopman_ctrl.control.physics_nmpc import (
     PhysicsNmpcSettings as Nmpc, prediction_grid, shift_plan, THETA_MARGIN)
@@ -180,7 +180,7 @@ class KoopmanNmpc(Law):
         return gains
 
     def compute(self, x):
-        x = np.asarray(x, dtype=float)[:self.model.n]
+        x = planar_state(x)
         cold = self.plan is None
         plan, nodes = (self.lqr_plan(x) if cold else
                        self.shifted_plan(x, self.plan_age + self.h))

@@ -7,9 +7,24 @@ caller passes u through `TensionLimiter`, the single output clamp. `reset()` for
 sample period h and the tension limit u_max are the loop's, not the law's, so they are separate.
 """
 
+import numpy as np
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control.settings import build, LawSettings
+
+
+def planar_state(x):
+    """The planar part [theta, theta', l - 1, l'] of a measured state, which must have 4
+    (planar) or 6 (3-D) finite components: ValueError otherwise, so that a wrong vector never
+    yields a plausible tension and a NaN never reaches a law's or an observer's memory."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim != 1:
+        raise ValueError(f'a TSR state is one vector of {dynamics.PLANAR_DIM} or '
+                         f'{dynamics.SPATIAL_DIM} components, got shape {x.shape}')
+    dynamics.check_state_dim(x.shape[0])
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f'the state {x.tolist()} is not finite: no tension for it')
+    return x[:dynamics.PLANAR_DIM]
 
 
 class Law:
@@ -29,4 +44,5 @@ class Law:
         self.fallbacks = 0
 
     def compute(self, x):
+        """The tension for the measured state x (`planar_state` checks it)."""
         raise NotImplementedError

@@ -3,10 +3,9 @@
 import dataclasses
 from typing import ClassVar
 
-import numpy as np
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.law import Law, planar_state
 from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain, state_cost_matrix
 from tsr_koopman_ctrl.control.settings import cross_weight_setting, LawSettings, setting
 
@@ -39,5 +38,5 @@ class LinearisedLqr(Law):
             state_cost_matrix(self.settings.q, self.settings.q_cross), self.settings.r)[0]
 
     def compute(self, x):
-        planar = np.asarray(x)[:dynamics.PLANAR_DIM]
+        planar = planar_state(x)
         return dynamics.EQUILIBRIUM_TENSION - float(self.gain @ planar)

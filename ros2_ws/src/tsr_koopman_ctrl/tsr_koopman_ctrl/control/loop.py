@@ -5,12 +5,13 @@ sensor noise), and the state and the command pass through SI units as on the wir
 deployed here and over DDS in lockstep sees the same numbers.
 """
 
+from collections.abc import Mapping
 import numbers
 import time
 
 import numpy as np
 from tsr_sim import dynamics
-from tsr_sim.plant import config_from_parameters, Plant, Status
+from tsr_sim.plant import config_from_parameters, Plant, plant_parameters, Status
 from tsr_sim.units import Scale
 
 from tsr_koopman_ctrl.control.limiter import TensionLimiter
@@ -22,14 +23,20 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     commanded tensions (k,), k = steps unless the state would leave the domain: then the loop
     halts there, as the simulator does, and k < steps.
 
-    `plant`: plant parameters making the true plant differ from the model (a mapping, e.g.
+    `plant`: plant parameters making the true plant differ from the model: a mapping (e.g.
     `tsr_sim.plant.plant_parameters('actuator_weak')`, with `mass`, `orbit_rate`,
-    `tether_length` for its units); `scale`: the units the controller converts with (default:
-    the paper's, `Scale()`); `excitation`: a `control.excitation.Excitation` added to the law's
-    tension before the clamp, as the controller node adds it (reset here).
+    `tether_length` for its units) or a plant variant's name or file; `scale`: the units the
+    controller converts with (default: the paper's, `Scale()`); `excitation`: a
+    `control.excitation.Excitation` added to the law's tension before the clamp, as the
+    controller node adds it (reset here).
     """
     if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 0:
         raise ValueError(f'closed_loop: steps must be an integer >= 0, got {steps!r}')
+    if isinstance(plant, str):
+        plant = plant_parameters(plant)
+    elif plant is not None and not isinstance(plant, Mapping):
+        raise ValueError('closed_loop: plant must be a mapping of plant parameters or a plant '
+                         f'variant name, got {type(plant).__name__}')
     scale = scale or Scale()
     params = dict(plant or {}, initial_state=[float(v) for v in x0], step=h, substeps=substeps)
     sim = Plant(config_from_parameters(params, scale))

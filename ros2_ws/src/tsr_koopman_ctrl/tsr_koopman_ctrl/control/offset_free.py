@@ -22,6 +22,7 @@ from typing import ClassVar
 import numpy as np
 from tsr_sim import dynamics
 
+from tsr_koopman_ctrl.control.law import planar_state
 from tsr_koopman_ctrl.control.observer import (DisturbanceObserver, koopman_predictor,
                                                physics_predictor)
 from tsr_koopman_ctrl.control.settings import build, LawSettings, setting
@@ -90,12 +91,14 @@ class OffsetFree:
         return self.observer.disturbance
 
     def compute(self, x):
-        measured = np.asarray(x, dtype=float)[:dynamics.PLANAR_DIM]
+        measured = planar_state(x)
         estimate = self.observer.update(measured, self.last_command)
         if hasattr(self.law, 'input_range'):   # the law's own bounds: the felt range
             low = max(self.observer.applied(0.0), 0.0)
             high = max(self.observer.applied(self.law.u_max), low + 1e-6)
             self.law.input_range = [float(self.law.model.input_map(u)) for u in (low, high)]
+        if not np.all(np.isfinite(estimate)):   # a diverged filter: no tension (the node
+            return float('nan')                 # says NON_FINITE_OUTPUT), not an exception
         felt = self.law.compute(estimate if self.observer_settings.filtered_state else measured)
         command = min(max(self.observer.command_for(felt), 0.0), self.law.u_max)
         self.last_command = command   # the observer must know the clamped command

@@ -33,7 +33,7 @@ import warnings
 import numpy as np
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.law import Law, planar_state
 from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
 from tsr_koopman_ctrl.control.settings import LawSettings, setting
 
@@ -322,7 +322,7 @@ class PhysicsNmpc(Law):
         return result, solved
 
     def compute(self, x):
-        planar = np.asarray(x, dtype=float)[:dynamics.PLANAR_DIM]
+        planar = planar_state(x)
         self.iterations, self.last_failure = 0, ''
         steps = len(self.durations)
         age = self.plan_age + self.h

@@ -7,6 +7,7 @@ from tsr_koopman_ctrl.control.koopman_nmpc import KoopmanNmpc
 from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
 from tsr_koopman_ctrl.control.physics_nmpc import PhysicsNmpc
+from tsr_koopman_ctrl.control.settings import build
 
 CONTROLLERS = {law.name: law for law in (LinearisedLqr, FractionalOrderPd, KoopmanLqr,
                                          KoopmanMpc, KoopmanNmpc, PhysicsNmpc)}
@@ -25,8 +26,8 @@ def make_controller(name, settings=None, observer=None, **overrides):
     offset-free control unless `observer` (ObserverSettings, a dict of them, or the defaults)
     says disturbance 'none'."""
     law = law_class(name)(settings, **overrides)
-    if isinstance(observer, dict):
-        observer = ObserverSettings(**observer)
+    if isinstance(observer, dict):      # checked as a law's settings: one line naming the key
+        observer = build(ObserverSettings, None, observer)
     observer = observer or ObserverSettings()
     return law if observer.disturbance == 'none' else OffsetFree(law, observer)
 
@@ -41,7 +42,6 @@ def preset(name, sections=None):
     a value of the wrong type or range is one ValueError line naming the file."""
     import os
 
-    from tsr_koopman_ctrl.control.settings import build
     from tsr_sim.parameter_file import node_parameters
     from tsr_sim.share import NOT_SOURCED, share_directory
     path = name
@@ -69,8 +69,10 @@ def preset(name, sections=None):
             grouped[section] = value
     for section, values in grouped.items():
         if section not in classes:
+            elsewhere = ('; deploy applies it, as the controller node does'
+                         if section in ('observer', 'excitation') else '')
             raise ValueError(f'{path}: {section!r} is not a section a preset can hold '
-                             f"({', '.join(sorted(classes))})")
+                             f"here ({', '.join(sorted(classes))}){elsewhere}")
         if not isinstance(values, dict):
             raise ValueError(f'{path}: {section} is not a section of settings')
         try:

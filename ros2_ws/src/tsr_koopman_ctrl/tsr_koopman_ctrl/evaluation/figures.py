@@ -37,6 +37,9 @@ def run_figures(tau, states, tensions, start=None, halted=False):
     frontier_ratio (None without a settle time or a tabulated frontier).
     """
     tau, states = np.asarray(tau, dtype=float), np.asarray(states, dtype=float)
+    if states.ndim != 2 or not len(states) or tau.shape != (len(states),):
+        raise ValueError(f'run_figures takes tau (N,) and states (N, n) with N >= 1, got tau '
+                         f'{tau.shape} and states {states.shape}')
     index = None if halted else settle_index(states)
     dt = np.diff(tau)
     u = np.asarray(tensions, dtype=float)[:dt.size]

@@ -10,6 +10,7 @@ module only reads it (no casadi on the control or scoring path).
 
 import functools
 import json
+import math
 import pathlib
 
 import numpy as np
@@ -63,6 +64,8 @@ def frontier_tau(start, swing):
     of the frontier there (the ratio to it over-states the gap). Every solved T is a local
     optimum, an upper bound of the true minimum.
     """
+    if not math.isfinite(swing) or swing < 0.0:
+        raise ValueError(f'frontier_tau: swing must be a finite angle >= 0 [rad], got {swing!r}')
     entry = table_entry(start)
     if entry is None:
         return None

@@ -16,10 +16,15 @@ import numpy as np
 import scipy.cluster.vq
 
 from tsr_koopman_ctrl.learning.errors import DIVERGED
+from tsr_koopman_ctrl.model.lifted import prediction_inputs
 
 
-def one_step_pairs(data):
-    """Flatten trajectories into (x_k, u_k, x_(k+1)) rows."""
+def one_step_pairs(data, who='fit'):
+    """Flatten trajectories into (x_k, u_k, x_(k+1)) rows; `who` names the caller in the
+    one-line error for anything but a Dataset."""
+    if not all(hasattr(data, name) for name in ('x', 'u', 'h')):
+        raise ValueError(f'{who} takes a Dataset (x (N, T + 1, n), u (N, T), h), got '
+                         f'{type(data).__name__}')
     n = data.x.shape[2]
     return (data.x[:, :-1].reshape(-1, n), data.u.reshape(-1, 1), data.x[:, 1:].reshape(-1, n))
 
@@ -29,6 +34,8 @@ class Edmd:
 
     def __init__(self, lift_dim=36, ridge=0.0, stabilise=False, seed=0,
                  max_centre_samples=20_000):
+        if isinstance(lift_dim, bool) or not isinstance(lift_dim, int) or lift_dim < 1:
+            raise ValueError(f'Edmd: lift_dim must be an integer >= 1, got {lift_dim!r}')
         self.lift_dim, self.ridge, self.seed = lift_dim, ridge, seed
         self.stabilise = stabilise
         self.name = 'edmd_stabilised' if stabilise else 'edmd'
@@ -42,7 +49,8 @@ class Edmd:
         return np.concatenate([x, rbf], axis=1)
 
     def fit(self, data):
-        x, u, x_next = one_step_pairs(data)
+        x, u, x_next = one_step_pairs(data, 'Edmd.fit')
+        self.n = x.shape[1]
         self.mean, self.std = x.mean(0), x.std(0) + 1e-12
         rng = np.random.default_rng(self.seed)
         pick = rng.choice(len(x), min(len(x), self.max_centre_samples), replace=False)
@@ -60,14 +68,22 @@ class Edmd:
         return self
 
     def predict(self, x0, u):
+        x0, u = fitted_inputs(self, hasattr(self, 'A'), x0, u)
         n = x0.shape[1]
-        z = self.lift(np.atleast_2d(x0))
+        z = self.lift(x0)
         states = [z[:, :n]]
         with np.errstate(all='ignore'):
             for k in range(u.shape[1]):
                 z = z @ self.A.T + u[:, k:k + 1] @ self.B.T
                 states.append(z[:, :n])
         return np.stack(states, axis=1)
+
+
+def fitted_inputs(model, fitted, x0, u):
+    """predict's (x0, u) checked: the model fitted, the shapes as LiftedModel.predict's."""
+    if not fitted:
+        raise ValueError(f'{type(model).__name__}.predict before fit: call fit(dataset) first')
+    return prediction_inputs(x0, u, model.n)
 
 
 def clip_spectrum(a, radius=1.0):
@@ -86,7 +102,8 @@ class Sindy:
 
     def fit(self, data):
         import pysindy
-        x, u, x_next = one_step_pairs(data)
+        x, u, x_next = one_step_pairs(data, 'Sindy.fit')
+        self.n = x.shape[1]
         self.model = pysindy.DiscreteSINDy(
             optimizer=pysindy.STLSQ(threshold=self.threshold, alpha=self.alpha),
             feature_library=pysindy.PolynomialLibrary(degree=self.degree))
@@ -97,7 +114,8 @@ class Sindy:
         """Predicted states (N, T + 1, n). A window that leaves |x| <= errors.DIVERGED is not
         stepped further (the polynomial library would overflow): its trajectory up to there is
         returned, NaN after, and `errors.multistep_errors` counts it as diverged."""
-        states = [np.atleast_2d(np.asarray(x0, dtype=float))]
+        x0, u = fitted_inputs(self, hasattr(self, 'model'), x0, u)
+        states = [x0]
         for k in range(u.shape[1]):
             current = states[-1]
             with np.errstate(invalid='ignore'):

@@ -216,12 +216,7 @@ class LiftedModel:
         system in z. Slower (one lift per step); along the physics NMPC's bang-bang deployment
         from the paper's start far more accurate beyond 30 steps (docs/comparison/
         README.md, *What the comparison shows*). One start may be given as x0 (n,), u (T,)."""
-        x0, u = np.atleast_2d(np.asarray(x0)), np.asarray(u)
-        if u.ndim == 1 and len(x0) == 1:
-            u = u[None]
-        if x0.ndim != 2 or x0.shape[1] != self.n or u.ndim != 2 or len(u) != len(x0):
-            raise ValueError(f'predict takes x0 (N, {self.n}) and u (N, T), got x0 '
-                             f'{np.shape(x0)} and u {np.shape(u)}')
+        x0, u = prediction_inputs(x0, u, self.n)
         if relift:
             states = [x0.astype(float)]
             for k in range(u.shape[1]):
@@ -278,6 +273,18 @@ class LiftedModel:
 
     def controllability_rank(self):
         return controllability_rank(self.A, self.B)
+
+
+def prediction_inputs(x0, u, n):
+    """(x0 (N, n), u (N, T)) as float arrays, one start also as x0 (n,), u (T,); the one-line
+    ValueError every model's predict gives for other shapes."""
+    x0, u = np.atleast_2d(np.asarray(x0, dtype=float)), np.asarray(u, dtype=float)
+    if u.ndim == 1 and len(x0) == 1:
+        u = u[None]
+    if x0.ndim != 2 or x0.shape[1] != n or u.ndim != 2 or len(u) != len(x0):
+        raise ValueError(f'predict takes x0 (N, {n}) and u (N, T), got x0 {np.shape(x0)} and '
+                         f'u {np.shape(u)}')
+    return x0, u
 
 
 def controllability_matrix(a, b, normalise=True):

@@ -190,7 +190,7 @@ def _metadata_line(bag, report):
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):
-        self.exit(2, f'{self.prog}: {message}\n')     # one line, no usage block
+        self.exit(2, f'{self.prog}: {message} ({self.prog} --help)\n')   # one line, no usage
 
 
 def parser():

@@ -64,6 +64,20 @@ def model_dir(text):
     return text
 
 
+def check_model_out(out, overwrite):
+    """Refuse, unless `overwrite`, an --out that already holds a model (a shipped one, a
+    finished training): a mistyped --out must not replace it silently (ValueError, one line)."""
+    from tsr_koopman_ctrl.model.model_file import META_FILE
+    if not overwrite and os.path.isfile(os.path.join(out, META_FILE)):
+        raise ValueError(f'--out {out} already holds a model: write the new one elsewhere, or '
+                         'pass --overwrite to replace it')
+
+
+def add_overwrite(parser):
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace the model --out already holds (refused without it)')
+
+
 def torch_device(text):
     """A torch device this machine has (cpu, cuda, cuda:1, ...)."""
     import torch

@@ -96,7 +96,9 @@ def parse_args(argv):
         try:
             validate_namespace(args.namespace)
         except NameValidationException as error:
-            parser.error(f'--namespace {args.namespace!r}: {str(error).splitlines()[0]}')
+            # rclpy's message ends its first line with ':' and the name on the next
+            reason = ' '.join(line.strip() for line in str(error).splitlines()[:2])
+            parser.error(f'--namespace {args.namespace!r}: {reason}')
     return args
 
 

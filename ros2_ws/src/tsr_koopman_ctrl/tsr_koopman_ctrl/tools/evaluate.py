@@ -176,9 +176,9 @@ def parser():
 def main(argv=None):
     args = parser().parse_args(argv)
     out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     log = lambda text: print(text, flush=True)  # noqa: E731
     try:
+        lifted.LiftedModel.load(args.model)     # a bad model is one line, before any work
         test, _ = datasets.sample(datasets.SamplingConfig(trajectories=args.test_trajectories,
                                                           seed=args.test_seed))
         if not args.sweep_only:
@@ -186,6 +186,7 @@ def main(argv=None):
     except (ValueError, model_file.ModelFileError) as error:
         print(f'evaluate: {error}', file=sys.stderr)
         return 2
+    out.mkdir(parents=True, exist_ok=True)     # made once the model has loaded, not before
     if not args.sweep_only:
         (out / 'comparison.json').write_text(json.dumps(results, indent=1) + '\n')
         (out / 'comparison.md').write_text(comparison_markdown(results, train_size, len(test)))

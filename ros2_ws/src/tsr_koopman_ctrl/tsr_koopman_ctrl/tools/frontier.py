@@ -194,7 +194,7 @@ class Parser(argparse.ArgumentParser):
 
 
 def main(argv=None):
-    p = Parser(description=__doc__.split('\n\n')[0])
+    p = Parser(prog='frontier', description=__doc__.split('\n\n')[0])
     p.add_argument('--start', type=int, nargs='+', metavar='I',
                    help=f'start indices 0..{len(STARTS) - 1} (default: all)')
     p.add_argument('--out', default=os.path.join('out', 'frontier_table.json'),

@@ -86,6 +86,7 @@ def parser():
     p.add_argument('--bags', nargs='+', action='extend', required=True, metavar='BAG_OR_DIR',
                    help='bags to train on (a directory: every bag below it)')
     p.add_argument('--out', required=True, type=cli.model_dir, help='model directory to write')
+    cli.add_overwrite(p)
     p.add_argument('--init', metavar='MODEL',
                    help='model to fine-tune (a directory or a shipped name)')
     p.add_argument('--from-scratch', action='store_true',
@@ -335,8 +336,11 @@ def run(args, context, given):
     if args.steps < 1 or args.stride < 1 or args.sampled_ratio < 0 or args.test_trajectories < 0:
         raise UsageError('--steps and --stride must be >= 1, --sampled-ratio and '
                          '--test-trajectories >= 0')
+    cli.check_model_out(args.out, args.overwrite)
     anchor = parse_anchor(args.anchor)
     config, init, init_tensors, init_config, structure = configure(args)
+    if anchor not in ('data', 'init'):      # checked before the bags are read
+        config = with_anchor(config, anchor)
     fine_tune = init is not None and init['fine_tuned']
     if config.batch_size % context.world_size:
         raise UsageError(f'--batch-size {config.batch_size} does not split evenly over '
@@ -499,8 +503,8 @@ def run(args, context, given):
     test_data = tests.get('held_out', tests.get('table1'))
     save_model(args.out, model, config, trainer, summary, test_data, seconds, command,
                extra={'retrain': retrain})
-    kept = (' (no epoch lowered the validation error: the init\'s weights)'
-            if trainer.best['epoch'] == 0 else '')
+    kept = (" (no epoch lowered the validation error: the init's weights, anchored at "
+            f"u = {config.anchor_tension:.4g})" if trainer.best['epoch'] == 0 else '')
     say(f"saved {args.out}: best epoch {trainer.best['epoch']}{kept}, {seconds:.0f} s")
     return 0
 

@@ -90,6 +90,7 @@ def structure_from_args(args):
 def parser():
     p = argparse.ArgumentParser(prog='train', description=__doc__.split('\n\n')[0])
     p.add_argument('--out', required=True, type=cli.model_dir, help='model directory to write')
+    cli.add_overwrite(p)
     p.add_argument('--data', action='append', default=[], help='dataset file (repeatable)')
     p.add_argument('--trajectories', type=int, default=40_000,
                    help='trajectories to sample with the paper settings (0: none)')
@@ -151,6 +152,7 @@ def main(argv=None):
             init, base, _ = model_file.load(shipped.resolve(args.init))
         config = config_from_args(args, base)
         structure = structure_from_args(args)
+        cli.check_model_out(args.out, args.overwrite)
         if args.resume and not os.path.exists(os.path.join(args.out, CHECKPOINT)):
             # Said before the data is sampled (a minute), as Trainer.restore would after.
             raise ValueError(f'cannot resume: no {os.path.join(args.out, CHECKPOINT)}')
