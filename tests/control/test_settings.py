@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from tsr_koopman_ctrl.control import CONTROLLERS, KoopmanMpc, LinearisedLqr, make_controller
-from tsr_koopman_ctrl.control.offset_free import ObserverSettings
+from tsr_koopman_ctrl.control.law import planar_state
+from tsr_koopman_ctrl.control.registry import settings_sections
 from tsr_koopman_ctrl.control.settings import parse_value, unknown_setting_names
 
 
@@ -35,8 +36,7 @@ def test_bad_settings_are_one_line_naming_the_setting(law, overrides, message):
 
 
 def test_a_parameter_naming_no_setting_of_its_section_is_found():
-    sections = {name: law.Settings for name, law in CONTROLLERS.items()}
-    sections['observer'] = ObserverSettings
+    sections = settings_sections()
     given = {'koopman_mpc.horizn', 'koopman_mpc.horizon', 'linear_lqr.q', 'linear_lqr.zeta',
              'observer.disturbnce', 'rate_hz', 'tsr_sim.anything', 'controller'}
     assert unknown_setting_names(given, sections) == [
@@ -104,3 +104,19 @@ def test_a_bad_state_is_refused_and_leaves_the_law_as_it_was(law, observer, stat
     with pytest.raises(ValueError, match=message.replace('(', r'\(').replace(')', r'\)')):
         used.compute(state)
     assert [used.compute(good) for _ in range(3)] == [fresh.compute(good) for _ in range(3)]
+
+
+@pytest.mark.filterwarnings('ignore:overflow encountered in reduce')
+def test_a_state_whose_sum_overflows_is_still_finite():
+    np.testing.assert_array_equal(planar_state([1e308, 1e308, 0.0, 0.0]), [1e308, 1e308, 0, 0])
+
+
+@pytest.mark.filterwarnings('ignore:invalid value encountered')    # the NaN put in the filter
+@pytest.mark.parametrize('law', ['linear_lqr', 'koopman_mpc'])
+def test_a_diverged_observer_gives_no_tension_rather_than_an_exception(law):
+    """The node answers a non-finite tension with NON_FINITE_OUTPUT and no command; an
+    exception out of its callback would end the node."""
+    controller = make_controller(law)
+    controller.compute([0.0, 0.0, -0.99, 0.5])
+    controller.observer.estimate[:] = np.nan
+    assert np.isnan(controller.compute([0.0, 0.0, -0.98, 0.5]))

@@ -161,7 +161,8 @@ def test_a_given_name_close_to_a_declared_one_is_warned_of(start_node, tmp_path)
     shared /** file) and dotted names stay quiet."""
     import time
     start_node('tsr_sim', 'sim_node', 'tsr_sim',
-               dict(SIM_PARAMS, mas=22.0, state_timeout=1.0, koopman_mpc={'horizon': 8}))
+               dict(SIM_PARAMS, mas=22.0, state_timeout=1.0, koopman_mpc={'horizon': 8},
+                    mas_={'s': 1.0}))       # 'mas_.s' is as close to 'mass' as 'mas' is
     log = tmp_path / 'tsr_sim.log'
     deadline = time.monotonic() + 30.0
     while 'did you mean' not in (text := log.read_text() if log.exists() else ''):
@@ -171,4 +172,4 @@ def test_a_given_name_close_to_a_declared_one_is_warned_of(start_node, tmp_path)
     text = log.read_text()
     assert "parameter 'mas' is not one of this node's and was ignored (did you mean " \
         "'mass'?)" in text
-    assert 'state_timeout' not in text and 'koopman_mpc' not in text
+    assert 'state_timeout' not in text and 'koopman_mpc' not in text and 'mas_.s' not in text

@@ -45,7 +45,9 @@ def run_tool(tool, argv):
     ('deploy', ['--model', 'no_such_model'], 'no_such_model: no such model directory'),
     ('deploy', ['--controller', 'linear_lqr', '--model', 'koopman_default'],
      '--model: linear_lqr uses no model'),
-    ('deploy', ['--namespace', 'bad!name'], "--namespace '/bad!name': Invalid namespace"),
+    ('deploy', ['--namespace', 'bad!name'], "--namespace '/bad!name': Invalid namespace: "
+     "namespace must not contain characters other than alphanumerics, '_', or '/': "
+     "'/bad!name'"),
     ('deploy', ['--preset', '{bad_yaml}'], 'bad.yaml: not valid YAML (line 2)'),
     ('deploy', ['--plant', '{bad_yaml}'], 'bad.yaml: not valid YAML (line 2)'),
     ('compare', ['--steps', '0'], 'argument --steps: 0 must be >= 1'),
@@ -98,6 +100,18 @@ def test_a_model_already_in_out_is_not_replaced_without_overwrite(tool, tmp_path
     err = capsys.readouterr().err
     assert f'--out {out} already holds a model' in err and '--overwrite' in err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_resume_may_continue_a_finished_run_in_out(tmp_path, capsys):
+    """--resume continues in --out (a finished run too, with more epochs): not refused as a
+    model in the way; here the checkpoint is missing, which is said instead."""
+    import shutil
+
+    from tsr_koopman_ctrl.model import shipped
+    out = tmp_path / 'model'
+    shutil.copytree(shipped.resolve('koopman_default'), out)
+    assert run_tool('train', ['--out', out, '--resume']) == 2
+    assert f'cannot resume: no {out}/checkpoint.pt' in capsys.readouterr().err
 
 
 def test_retrain_checks_a_given_anchor_before_reading_bags(tmp_path, monkeypatch, capsys):

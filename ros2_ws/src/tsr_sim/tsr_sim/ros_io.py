@@ -101,9 +101,9 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     sets ends the run the same way (an exception out of a callback would be logged as fatal).
     A parameter given but not declared that is close to a declared one is a warning
     (`warn_near_misses`). A bad parameter (out of range, wrong type, invalid value) or model
-    while constructing, or
-    a --params-file that cannot be read (`parameter_file.params_file_problem`, checked before
-    rcl would log its own [ERROR] line), is one clear line on stderr and exit code 2.
+    while constructing, or a --params-file that cannot be read
+    (`parameter_file.params_file_problem`, checked before rcl would log its own [ERROR] line),
+    is one clear line on stderr and exit code 2.
     """
     from rclpy.experimental import EventsExecutor
     from rclpy.impl.implementation_singleton import rclpy_implementation

@@ -93,12 +93,14 @@ class OffsetFree:
     def compute(self, x):
         measured = planar_state(x)
         estimate = self.observer.update(measured, self.last_command)
+        # A filter gone non-finite (x_hat or d; a_hat is NaN by design until the first
+        # command): no tension, which the node reports as NON_FINITE_OUTPUT, not an exception.
+        if not (np.all(np.isfinite(estimate)) and np.isfinite(self.observer.disturbance)):
+            return float('nan')
         if hasattr(self.law, 'input_range'):   # the law's own bounds: the felt range
             low = max(self.observer.applied(0.0), 0.0)
             high = max(self.observer.applied(self.law.u_max), low + 1e-6)
             self.law.input_range = [float(self.law.model.input_map(u)) for u in (low, high)]
-        if not np.all(np.isfinite(estimate)):   # a diverged filter: no tension (the node
-            return float('nan')                 # says NON_FINITE_OUTPUT), not an exception
         felt = self.law.compute(estimate if self.observer_settings.filtered_state else measured)
         command = min(max(self.observer.command_for(felt), 0.0), self.law.u_max)
         self.last_command = command   # the observer must know the clamped command

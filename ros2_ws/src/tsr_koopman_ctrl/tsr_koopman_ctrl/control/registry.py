@@ -1,5 +1,6 @@
 """The laws by name: what the node, the tools and users build a controller from."""
 
+from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.fractional_pd import FractionalOrderPd
 from tsr_koopman_ctrl.control.koopman_lqr import KoopmanLqr
 from tsr_koopman_ctrl.control.koopman_mpc import KoopmanMpc
@@ -11,6 +12,15 @@ from tsr_koopman_ctrl.control.settings import build
 
 CONTROLLERS = {law.name: law for law in (LinearisedLqr, FractionalOrderPd, KoopmanLqr,
                                          KoopmanMpc, KoopmanNmpc, PhysicsNmpc)}
+#: The controller's settings sections that are not laws: the observer (offset-free control)
+#: and the excitation. The node declares them, deploy and its presets take them.
+NODE_SECTIONS = {'observer': ObserverSettings, 'excitation': ExcitationSettings}
+
+
+def settings_sections():
+    """{section: settings class} of every section the controller's parameters may hold: each
+    law's and NODE_SECTIONS."""
+    return {**{name: law.Settings for name, law in CONTROLLERS.items()}, **NODE_SECTIONS}
 
 
 def law_class(name):
@@ -70,7 +80,7 @@ def preset(name, sections=None):
     for section, values in grouped.items():
         if section not in classes:
             elsewhere = ('; deploy applies it, as the controller node does'
-                         if section in ('observer', 'excitation') else '')
+                         if section in NODE_SECTIONS else '')
             raise ValueError(f'{path}: {section!r} is not a section a preset can hold '
                              f"here ({', '.join(sorted(classes))}){elsewhere}")
         if not isinstance(values, dict):

@@ -12,6 +12,8 @@ Both follow one interface (after pykoopman / pysindy): ``fit(dataset) -> self`` 
   sparse regression by pysindy's STLSQ (pysindy is the field's maintained implementation).
 """
 
+import numbers
+
 import numpy as np
 import scipy.cluster.vq
 
@@ -34,7 +36,8 @@ class Edmd:
 
     def __init__(self, lift_dim=36, ridge=0.0, stabilise=False, seed=0,
                  max_centre_samples=20_000):
-        if isinstance(lift_dim, bool) or not isinstance(lift_dim, int) or lift_dim < 1:
+        if isinstance(lift_dim, bool) or not isinstance(lift_dim, numbers.Integral) or (
+                lift_dim < 1):
             raise ValueError(f'Edmd: lift_dim must be an integer >= 1, got {lift_dim!r}')
         self.lift_dim, self.ridge, self.seed = lift_dim, ridge, seed
         self.stabilise = stabilise

@@ -218,7 +218,7 @@ class LiftedModel:
         README.md, *What the comparison shows*). One start may be given as x0 (n,), u (T,)."""
         x0, u = prediction_inputs(x0, u, self.n)
         if relift:
-            states = [x0.astype(float)]
+            states = [x0]
             for k in range(u.shape[1]):
                 states.append(self.step(states[-1], u[:, k]))
             return np.stack(states, axis=1)

@@ -41,7 +41,7 @@ from tsr_koopman_ctrl.control import CONTROLLERS, make_controller, TensionLimite
 from tsr_koopman_ctrl.control.excitation import Excitation as ExcitationSource
 from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings
-from tsr_koopman_ctrl.control.registry import law_class
+from tsr_koopman_ctrl.control.registry import law_class, settings_sections
 from tsr_koopman_ctrl.control.settings import fields, unknown_setting_names
 from tsr_koopman_ctrl.model.model_file import WEIGHTS_FILE
 
@@ -66,9 +66,7 @@ class ControllerNode(Node):
     def __init__(self):
         super().__init__('tsr_controller')
         # A misspelt setting would be dropped by ROS and the law deployed with its default.
-        sections = {name: law.Settings for name, law in CONTROLLERS.items()}
-        sections.update(observer=ObserverSettings, excitation=ExcitationSettings)
-        problems = unknown_setting_names(given_parameter_names(self), sections)
+        problems = unknown_setting_names(given_parameter_names(self), settings_sections())
         if problems:
             raise ValueError('; '.join(problems))
         self.law_name = declare(self, 'controller', DEFAULT_CONTROLLER,

@@ -24,9 +24,7 @@ from tsr_sim.plant import plant_parameters
 
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.control import CONTROLLERS
-from tsr_koopman_ctrl.control.excitation import ExcitationSettings
-from tsr_koopman_ctrl.control.offset_free import ObserverSettings
-from tsr_koopman_ctrl.control.registry import law_class, preset
+from tsr_koopman_ctrl.control.registry import law_class, NODE_SECTIONS, preset
 from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
@@ -115,7 +113,7 @@ def check_models(args):
 
 
 #: --set sections that are not laws: the observer (offset-free control) and the excitation.
-SECTIONS = {'observer': ObserverSettings, 'excitation': ExcitationSettings}
+SECTIONS = NODE_SECTIONS
 
 
 def settings_class(section):

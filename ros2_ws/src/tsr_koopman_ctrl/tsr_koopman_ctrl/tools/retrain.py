@@ -339,8 +339,8 @@ def run(args, context, given):
     cli.check_model_out(args.out, args.overwrite)
     anchor = parse_anchor(args.anchor)
     config, init, init_tensors, init_config, structure = configure(args)
-    if anchor not in ('data', 'init'):      # checked before the bags are read
-        config = with_anchor(config, anchor)
+    if anchor not in ('data', 'init'):
+        with_anchor(config, anchor)     # checked before the bags are read; anchored() applies it
     fine_tune = init is not None and init['fine_tuned']
     if config.batch_size % context.world_size:
         raise UsageError(f'--batch-size {config.batch_size} does not split evenly over '

@@ -152,7 +152,8 @@ def main(argv=None):
             init, base, _ = model_file.load(shipped.resolve(args.init))
         config = config_from_args(args, base)
         structure = structure_from_args(args)
-        cli.check_model_out(args.out, args.overwrite)
+        # --resume continues the run in --out, finished or not (README: with more epochs).
+        cli.check_model_out(args.out, args.overwrite or args.resume)
         if args.resume and not os.path.exists(os.path.join(args.out, CHECKPOINT)):
             # Said before the data is sampled (a minute), as Trainer.restore would after.
             raise ValueError(f'cannot resume: no {os.path.join(args.out, CHECKPOINT)}')
