@@ -163,6 +163,20 @@ def test_the_analytic_step_jacobians_match_central_differences(tiny_model, activ
     assert np.abs(d_tension).max() > 1e-3
 
 
+@pytest.mark.parametrize('activation', ['tanh', 'elu'])
+def test_the_exact_lift_jacobian_matches_central_differences(tiny_model, activation):
+    tensors, config, _ = model_file.load(tiny_model[0])
+    model = lifted.LiftedModel(tensors, dataclasses.replace(config, activation=activation))
+    eps = 1e-6
+    for x in (np.array([0.0, 0.0, 0.0, 0.0]), np.array([0.3, -0.2, -0.5, 0.4])):
+        by_differences = np.stack([(model.psi_x(x + eps * e) - model.psi_x(x - eps * e))
+                                   / (2 * eps) for e in np.eye(4)], axis=1)
+        jacobian = model.lift_jacobian(x)
+        np.testing.assert_allclose(jacobian, by_differences, atol=1e-8)
+        np.testing.assert_array_equal(jacobian[:4], np.eye(4))     # psi_x starts with x
+        assert np.abs(jacobian[4:]).max() > 1e-3
+
+
 def test_relifting_keeps_the_shipped_model_accurate_over_a_whole_deployment():
     """Along a closed-loop deployment from the paper's start (the plant's own trajectory), the
     lifted linear system of koopman_default diverges within 100 steps (its A has modes up to

@@ -72,7 +72,7 @@ class KoopmanLqr(Law):
         u_hat = self.u_hat_ref - float(self.gain @ (self.model.psi_x(planar) - self.z_ref))
         return self.model.tension_from_input(planar, u_hat)
 
-    def observable_feedforward_split(self, eps=1e-6):
+    def observable_feedforward_split(self):
         """(K_x, K_phi): the law's gain split as u_hat - u_hat_d = -(K_x x + K_phi phi(x)),
         phi(x) the observables less their linear part at the target (psi_x(x) - z_d =
         [x; D x + phi(x)], D = `LiftedModel.lift_jacobian`'s observable rows). K_x alone is the
@@ -80,7 +80,7 @@ class KoopmanLqr(Law):
         observables the model predicts to decay on their own (docs/comparison/README.md,
         *Why the fast observables fix it*)."""
         n = self.model.n
-        jacobian = self.model.lift_jacobian(eps=eps)[n:]
+        jacobian = self.model.lift_jacobian()[n:]
         return self.gain[:n] + self.gain[n:] @ jacobian, self.gain[n:].copy()
 
     def closed_loop_spectral_radius(self):

@@ -197,8 +197,8 @@ def from_tensors(tensors, config, structure=None):
     a = np.asarray(tensors['A'], dtype=float)
     b = np.array(tensors['B'], dtype=float)
     if structure.flat:
-        # The observables' Jacobian at the anchor (K x n), float64 central differences.
-        jacobian = LiftedModel(tensors, config).lift_jacobian(eps=1e-5)[n:]
+        # The observables' Jacobian at the anchor (K x n), exact, in float64.
+        jacobian = LiftedModel(tensors, config).lift_jacobian()[n:]
         t = flat_basis(jacobian, config.lifted_dim)
         a, b = np.linalg.solve(t, a @ t), np.linalg.solve(t, b)
     basis, real_values, pair_values = real_block_form(a[n:, n:])

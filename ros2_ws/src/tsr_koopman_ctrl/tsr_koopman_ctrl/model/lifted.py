@@ -260,16 +260,18 @@ class LiftedModel:
         d_tension = (gain * self.input_map.derivative(u))[:, None] * b_x[None, :]
         return following, d_state, d_tension
 
-    def lift_jacobian(self, x=None, eps=1e-6):
-        """dpsi_x/dx at x (default: the equilibrium), (lifted_dim, n), by central differences."""
+    def lift_jacobian(self, x=None):
+        """dpsi_x/dx at x (default: the equilibrium), (lifted_dim, n): exact, the lifting
+        network differentiated in forward mode (`Mlp.with_tangents`)."""
         x = dynamics.equilibrium_state(self.n) if x is None else np.asarray(x, dtype=float)
-        steps = eps * np.eye(self.n)
-        return (self.psi_x(x + steps) - self.psi_x(x - steps)).T / (2.0 * eps)
+        directions = np.diag(1.0 / self.std)[None]     # d((x - mean) / std) / dx, per component
+        _, d_lifted = self.lift.with_tangents(((x - self.mean) / self.std)[None], directions)
+        return np.vstack([np.eye(self.n), d_lifted[0].T])
 
-    def local_linear_model(self, x=None, eps=1e-6):
+    def local_linear_model(self, x=None):
         """(J, B_x): the state part of the lifted model's one-step map linearised at x (default:
         the equilibrium) in the lifted input, x+ ~ J x + B_x u_hat; J = A_x dpsi_x/dx."""
-        return self.A[:self.n] @ self.lift_jacobian(x, eps), self.B[:self.n]
+        return self.A[:self.n] @ self.lift_jacobian(x), self.B[:self.n]
 
     def controllability_rank(self):
         return controllability_rank(self.A, self.B)
