@@ -63,8 +63,8 @@ def warn_near_misses(node):
     (the controller refuses a misspelt law setting)."""
     declared = [name for name in node.list_parameters([], 0).names if '.' not in name]
     for name in sorted(given_parameter_names(node) - set(declared)):
-        close = difflib.get_close_matches(name, declared, n=1, cutoff=0.8)
-        if '.' not in name and close:
+        close = '.' not in name and difflib.get_close_matches(name, declared, n=1, cutoff=0.8)
+        if close:
             node.get_logger().warning(f"parameter '{name}' is not one of this node's and was "
                                       f"ignored (did you mean '{close[0]}'?)")
 
