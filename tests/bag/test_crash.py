@@ -444,3 +444,27 @@ def test_bad_bags_exit_2_with_one_line(tmp_path, capsys):
         assert err.startswith(start) and err.count('\n') == 1, (argv, err)
     assert not (tmp_path / 'junk_recovered').exists()
     assert os.listdir(tmp_path / 'full') == ['keep']
+
+
+def test_recover_keeps_a_recorded_topic_that_never_had_a_message(tmp_path, capsys):
+    """A topic whose publisher never appeared has no channel in the files (it waits for the
+    publisher's QoS): after a kill -9 only the recorder's last metadata.yaml names it, and the
+    recovered bag lists it with 0 messages, as a clean stop does."""
+    writer = bag.BagWriter(str(tmp_path / 'b'), flush_period=0)
+    writer.add_topic(string_topic())
+    writer.add_topic(int_topic('/silent'), qos_pending=True)
+    for i in range(20):
+        writer.write('/chatter', cdr_string(f'm{i}'), log_time_ns=10**9 + i)
+    writer.flush()
+    killed = killed_copy(tmp_path / 'b', tmp_path / 'killed')
+    out = tmp_path / 'fixed'
+    assert bag_tool.main(['recover', str(killed), '--out', str(out)]) == 0
+    assert capsys.readouterr().out.startswith(
+        f'kept 20 messages (/chatter 20, /silent 0) in {out}')
+    listed = {t['topic_metadata']['name']: (t['topic_metadata']['type'], t['message_count'])
+              for t in metadata(out)['topics_with_message_count']}
+    assert listed == {'/chatter': ('std_msgs/msg/String', 20),
+                      '/silent': ('std_msgs/msg/Int32', 0)}
+    got, _ = read_with_rosbags(out)      # still a bag rosbags opens, with every message
+    assert [g[3] for g in got] == [f'm{i}' for i in range(20)]
+    writer.close()

@@ -12,11 +12,13 @@ bag is not), reads each file as `BagReader` does (every complete chunk, and of a
 its complete zstd blocks; what was still in the writer's memory never reached the file) and
 writes it anew, with the same name, complete and indexed: the same schemas, channels (QoS and
 type hash in their metadata), log and publish times, sequence numbers and order, plus a
-metadata.yaml with the true counts. It prints one line: messages kept per topic, and from which
-files. Output: `<BAG>_recovered` next to the bag, or --out; --in-place writes to a temporary
-directory next to the bag first, then replaces the bag's files one by one (os.replace) and
-metadata.yaml last, removes files that hold no message, and refuses a bag with a corrupt or
-non-MCAP file (their unreadable bytes would be lost). Errors: one line, exit status 2.
+metadata.yaml with the true counts (and, from the bag's own metadata.yaml, the topics recorded
+that never had a message, so no channel). It prints one line: messages kept per topic, and
+from which files. Output: `<BAG>_recovered` next to the bag, or --out; --in-place writes to a
+temporary directory next to the bag first, then replaces the bag's files one by one
+(os.replace) and metadata.yaml last, removes files that hold no message, and refuses a bag with
+a corrupt or non-MCAP file (their unreadable bytes would be lost). Errors: one line, exit
+status 2.
 """
 
 import argparse
@@ -135,8 +137,27 @@ def _rewrite(bag, target):
         result.files.append(stats)
         finish_mcap(stream, writer, bag_metadata(list(result.topics.values()), result.files))
         _check_written(out_path, stats.count)
+    for topic in _listed_topics(bag):  # recorded but never published: no channel in the files
+        result.topics.setdefault(topic.name, topic)
     write_metadata(target, bag_metadata(list(result.topics.values()), result.files))
     return result
+
+
+def _listed_topics(bag):
+    """The topics the bag's own metadata.yaml lists, with 0 messages (TopicStats; [] if it
+    cannot be read). A recorder writes it at every flush with every topic it records; a topic
+    whose publisher never appeared has no channel in the files (its channel waits for the
+    QoS), so after a kill -9 this is the only record of it."""
+    try:
+        with open(os.path.join(bag, METADATA_FILE)) as f:
+            info = yaml.safe_load(f)['rosbag2_bagfile_information']
+        listed = [entry['topic_metadata'] for entry in info['topics_with_message_count']]
+        return [TopicStats(t['name'], t['type'],
+                           yaml.safe_dump(t['offered_qos_profiles'], sort_keys=False)
+                           if t.get('offered_qos_profiles') else '',
+                           t.get('type_description_hash', '')) for t in listed]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return []
 
 
 def _check_written(path, count):
