@@ -75,7 +75,7 @@ def parse_args(argv):
     args = parser.parse_args(argv)
     try:
         args.law_settings = law_settings(args.set, args.model)
-        for law, values in (preset(args.preset, SECTIONS) if args.preset else {}).items():
+        for law, values in (preset(args.preset, NODE_SECTIONS) if args.preset else {}).items():
             args.law_settings[law] = {**values, **args.law_settings.get(law, {})}
     except ValueError as error:
         parser.error(str(error))
@@ -112,13 +112,9 @@ def check_models(args):
         LiftedModel.load(args.law_settings.get(law, {}).get('model', default))
 
 
-#: --set sections that are not laws: the observer (offset-free control) and the excitation.
-SECTIONS = NODE_SECTIONS
-
-
 def settings_class(section):
     """The settings class of a --set section: a law's, the observer's or the excitation's."""
-    return SECTIONS.get(section) or law_class(section).Settings
+    return NODE_SECTIONS.get(section) or law_class(section).Settings
 
 
 def law_settings(assignments, model):
@@ -163,7 +159,7 @@ def run(args, controller, x0, run_dir, name):
 
     recorder = start('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
                      {'output_dir': args.bags, 'bag_name': name})
-    law = {section: args.law_settings[section] for section in (controller, *SECTIONS)
+    law = {section: args.law_settings[section] for section in (controller, *NODE_SECTIONS)
            if args.law_settings.get(section)}
     control = start('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
                     {'controller': controller, 'wait_for_subscribers': 2, **law})
