@@ -190,3 +190,18 @@ def test_relifting_keeps_the_shipped_model_accurate_over_a_whole_deployment():
     relifted = model.predict(states[:1], tensions[None], relift=True)[0]
     assert np.abs(linear[100] - states[100]).max() > 10.0
     assert np.abs(relifted[1:] - states[1:]).max() < 0.2
+
+
+def test_a_saved_model_is_readable_as_the_umask_allows(tiny_model, tmp_path):
+    """safetensors created the weights 0600, so a model retrained by one user could not be
+    deployed by another; both files now take the umask's mode, as model.json always did."""
+    import os
+    import stat
+    tensors, config, metadata = model_file.load(tiny_model[0])
+    previous = os.umask(0o022)
+    try:
+        model_file.save(tmp_path / 'saved', tensors, config, metadata)
+    finally:
+        os.umask(previous)
+    for name in (model_file.WEIGHTS_FILE, model_file.META_FILE):
+        assert stat.S_IMODE((tmp_path / 'saved' / name).stat().st_mode) == 0o644, name

@@ -69,6 +69,12 @@ def run_tool(tool, argv):
     ('evaluate', ['--sweep-epochs', '0'], 'argument --sweep-epochs: 0 must be >= 1'),
     ('evaluate', ['--model', 'no_such_model', '--out', 'ev'], 'no_such_model: no such model'),
     ('loop', ['--plant', 'actuator_weak', '--rounds', '0'], 'argument --rounds: 0 must be >= 1'),
+    ('loop', ['--plant', 'actuator_weak', '--steps', '20'],
+     '--steps 20: retraining cuts 30-step windows from the deployments'),
+    ('deploy', ['--out', 'x', '--bags', 'x'], '--out and --bags must differ'),
+    ('tune', ['--law', 'koopman_mpc', '--fix', 'model=no_such_model'],
+     'no_such_model: no such model directory'),
+    ('mpc_sweep', ['--horizons', '3', '201'], 'argument --horizons: 201 must be <= 200'),
     ('loop', ['--plant', 'no_such_plant'], "no plant variant 'no_such_plant'"),
     ('loop', ['--plant', 'actuator_weak', '--model', 'no_such_model'], 'no such model'),
 ])
@@ -123,6 +129,31 @@ def test_retrain_checks_a_given_anchor_before_reading_bags(tmp_path, monkeypatch
     assert list(tmp_path.iterdir()) == []
 
 
+def test_compare_reads_every_preset_before_the_first_run(tmp_path, monkeypatch, capsys):
+    """A bad second preset was found after the first preset's runs (minutes at 2000 steps)."""
+    monkeypatch.chdir(tmp_path)
+    assert run_tool('compare', ['--laws', 'linear_lqr', '--presets', 'tuned', 'no_such',
+                                '--steps', '50']) == 2
+    out, err = capsys.readouterr()
+    assert "no settings preset 'no_such'" in err and out == ''     # no run printed
+
+
+def test_loop_stops_when_a_deployment_is_interrupted(tmp_path, monkeypatch, capsys):
+    """Ctrl-C cut one deployment short and the loop went on, keeping the cut-short bag."""
+    from tsr_koopman_ctrl.tools import deploy
+    runs = []
+
+    def interrupted(*args):
+        runs.append(args)
+        raise deploy.Interrupted(str(tmp_path / 'bag'))
+    monkeypatch.setattr(deploy, 'run', interrupted)
+    plant = params(tmp_path, 'actuator_gain: 0.9')   # a plant file: its work directory was
+    assert run_tool('loop', ['--plant', plant, '--out', tmp_path / 'loop']) == 130   # the file
+    assert len(runs) == 1 and (tmp_path / 'loop' / 'file').is_dir()
+    assert 'holds the steps run so far; stopped, the finished rounds stay in' in \
+        capsys.readouterr().err
+
+
 def test_tune_leaves_a_storage_file_that_is_not_a_journal_alone(text_file, capsys):
     assert run_tool('tune', ['--law', 'linear_lqr', '--storage', text_file]) == 2
     assert 'is not an Optuna journal file; nothing was written to it' in capsys.readouterr().err
@@ -160,6 +191,8 @@ def params(tmp_path, text):
     ('deploy', '--plant', 'actuator_lag: fast', 'actuator_lag must be a number'),
     ('deploy', '--plant', 'substeps: 0', 'substeps must be in [1, 10000], got 0'),
     ('deploy', '--plant', 'seed: 1.5', 'seed must be an integer, got 1.5'),
+    ('deploy', '--plant', 'initial_state: [0.0, 0.0, -0.5, 0.0]',
+     'initial_state would be overridden by deploy (give --x0 and --steps instead)'),
 ])
 def test_a_bad_preset_or_plant_file_is_one_line_and_status_2(tool, option, text, message,
                                                              tmp_path, monkeypatch, capsys):

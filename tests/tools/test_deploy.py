@@ -179,3 +179,31 @@ def test_a_plant_variant_over_dds_is_the_ros_free_one(tmp_path, domain_id):
     nominal_x, _ = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE,
                                steps)
     assert np.abs(nominal_x - want_x).max() > 1e-3     # the variant does change the run
+
+
+def test_ctrl_c_closes_the_bag_summarises_the_steps_run_and_exits_130(tmp_path, domain_id):
+    """Ctrl-C used to end `deploy` with status 0, and `loop` went on with the cut-short bag."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    command = [sys.executable, '-m', 'tsr_koopman_ctrl.tools.deploy', '--controller',
+               'linear_lqr', '--steps', '100000', *deploy_args(tmp_path, domain_id)]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60.0
+    while not list((tmp_path / 'bags').glob('*/*.mcap')):     # the recorder has started
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    time.sleep(3.0)                       # some steps into the bag
+    os.kill(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, (out, err)
+    assert '[deploy] interrupted: closing the bag' in out
+    assert 'holds the steps run so far' in err and 'Traceback' not in err
+    (bag_path,) = (tmp_path / 'bags').iterdir()
+    loop = read_loop(str(bag_path))
+    assert 0 < loop.step[-1] < 100000 and loop.step.tolist() == list(range(loop.step[-1] + 1))
+    (run_dir,) = (tmp_path / 'out').iterdir()
+    summary = json.loads((run_dir / 'summary.json').read_text())
+    assert summary[0]['steps'] == int(loop.step[-1])

@@ -15,6 +15,7 @@ numpy (`tsr_koopman_ctrl.model.lifted`).
 
 import dataclasses
 import json
+import os
 import pathlib
 
 import numpy as np
@@ -157,10 +158,14 @@ def save(directory, tensors, config, metadata):
     arrays = {name: np.array(value, dtype=np.float32) for name, value in tensors.items()}
     meta = {'format': FORMAT, 'version': FORMAT_VERSION, 'config': dataclasses.asdict(config),
             **metadata}
+    umask = os.umask(0)
+    os.umask(umask)
     for name, write in ((WEIGHTS_FILE, lambda p: save_file(arrays, str(p))),
                         (META_FILE, lambda p: p.write_text(json.dumps(meta, indent=2) + '\n'))):
         partial = directory / (name + '.partial')
         write(partial)
+        # safetensors creates its file 0600: a model is read by whoever deploys it.
+        partial.chmod(0o666 & ~umask)
         partial.replace(directory / name)
 
 

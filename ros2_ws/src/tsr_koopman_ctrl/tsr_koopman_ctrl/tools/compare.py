@@ -67,14 +67,19 @@ def compare(laws, presets, steps, theta_max=None):
         if not set(laws) & set(bounded):
             raise ValueError(f'--theta-max: none of {list(laws)} takes a swing bound (those '
                              f'that do: {sorted(bounded)})')
+        left_out = [law for law in laws if law not in bounded]
+        if left_out:
+            print(f'--theta-max: {", ".join(left_out)} take no swing bound: left out', flush=True)
         laws = [law for law in laws if law in bounded]
-    defaults_shown = set()
-    for name in dict.fromkeys(presets):     # each preset once, in the order given
-        values = {} if name == 'tuned' else preset(name)
-        named, shown_anyway = set(values) & set(laws), NOT_TUNED & set(laws)
-        if name != 'tuned' and not (named or shown_anyway):
+    # Every preset read and checked before the first run, which takes minutes.
+    preset_values = {name: {} if name == 'tuned' else preset(name)
+                     for name in dict.fromkeys(presets)}    # each preset once, in order
+    for name, values in preset_values.items():
+        if name != 'tuned' and not (set(values) & set(laws) or NOT_TUNED & set(laws)):
             raise ValueError(f'--presets {name}: sets none of the laws compared '
                              f'({list(laws)}), only {sorted(values)}')
+    defaults_shown = set()
+    for name, values in preset_values.items():
         for law in laws:
             label = name
             if law in NOT_TUNED and law not in values:   # its defaults, once

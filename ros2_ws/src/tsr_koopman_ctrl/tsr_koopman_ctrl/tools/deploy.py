@@ -81,11 +81,18 @@ def parse_args(argv):
         parser.error(str(error))
     if not dynamics.in_domain(np.asarray(args.x0, dtype=float)):
         parser.error(f'--x0 {list(args.x0)} is outside the model domain (finite, l - 1 > -1)')
+    if os.path.abspath(args.out) == os.path.abspath(args.bags):
+        parser.error('--out and --bags must differ: a bag directory holds only the bag')
     try:
         args.plant_parameters = plant_parameters(args.plant)
         check_models(args)
     except ValueError as error:
         parser.error(str(error))
+    # The run's start and length are deploy's to set: a plant file's would be overridden.
+    overridden = sorted({'initial_state', 'max_steps'} & set(args.plant_parameters))
+    if overridden:
+        parser.error(f'--plant {args.plant}: {", ".join(overridden)} would be overridden by '
+                     f'deploy (give --x0 and --steps instead)')
     if args.namespace is not None:
         from rclpy.exceptions import NameValidationException
         from rclpy.validate_namespace import validate_namespace
@@ -142,10 +149,23 @@ def stamp():
     return datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%d_%H%M%S')
 
 
+#: Exit status of a run stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
+INTERRUPTED_STATUS = 130
+
+
+class Interrupted(Exception):
+    """A deployment stopped by Ctrl-C: its nodes are stopped and its bag is closed, holding the
+    steps run so far. Callers keep what finished and stop (a loop or a comparison must not go
+    on with a cut-short run)."""
+
+    def __init__(self, bag_path):
+        super().__init__(f'interrupted: {bag_path} holds the steps run so far')
+        self.bag_path = bag_path
+
+
 def run(args, controller, x0, run_dir, name):
-    """One deployment over DDS; returns the bag path. Node logs go to run_dir."""
-    if os.path.abspath(args.out) == os.path.abspath(args.bags):
-        raise ValueError('--out and --bags must differ: a bag directory holds only the bag')
+    """One deployment over DDS; returns the bag path (raises Interrupted on Ctrl-C, once the
+    bag is closed). Node logs go to run_dir."""
     os.makedirs(run_dir, exist_ok=True)
     domain = args.domain if args.domain is not None else random_domain_id()
     print(f'[deploy] {controller} from x0 = {[float(v) for v in x0]} for {args.steps} steps '
@@ -168,13 +188,17 @@ def run(args, controller, x0, run_dir, name):
                  'initial_state': [float(v) for v in x0],
                  'max_steps': args.steps, 'exit_on_finish': True, 'wait_for_subscribers': 2,
                  'progress_every': 100}, console=True)
+    interrupted = False
     try:
         watch(sim, (control, recorder), args.timeout)
     except KeyboardInterrupt:
         print('[deploy] interrupted: closing the bag', flush=True)
+        interrupted = True
     finally:
         for proc in (sim, control, recorder):
             proc.stop()
+    if interrupted:
+        raise Interrupted(os.path.join(args.bags, name))
     return os.path.join(args.bags, name)
 
 
@@ -213,13 +237,20 @@ def summarise(bag_path, controller, x0, planned_steps, namespace=None):
 
 
 def deploy_one(args):
+    """The deployment, summarised; an interrupted one is summarised as far as it ran, then
+    Interrupted is raised again."""
     name = f'deploy_{args.controller}_{stamp()}'
     run_dir = os.path.join(args.out, name)
-    bag_path = run(args, args.controller, args.x0, run_dir, name)
+    try:
+        bag_path, stopped = run(args, args.controller, args.x0, run_dir, name), None
+    except Interrupted as interruption:
+        bag_path, stopped = interruption.bag_path, interruption
     row, loop = summarise(bag_path, args.controller, args.x0, args.steps, args.namespace)
     plot_deployments({args.controller: loop}, os.path.join(run_dir, 'deployment.png'),
                      title=f'TSR deployment over DDS: {args.controller}')
     write_report(run_dir, [row])
+    if stopped is not None:
+        raise stopped
     return [row]
 
 
@@ -227,16 +258,21 @@ def compare(args):
     """Every controller from every comparison start, each a three-process deployment."""
     compare_dir = os.path.join(args.out, f'compare_{stamp()}')
     rows = []
-    for index, x0 in enumerate(COMPARISON_STARTS):
-        runs = {}
-        for controller in sorted(CONTROLLERS):
-            name = f'compare_{controller}_x{index}_{stamp()}'
-            bag_path = run(args, controller, x0, os.path.join(compare_dir, name), name)
-            row, runs[controller] = summarise(bag_path, controller, x0, args.steps,
-                                              args.namespace)
-            rows.append(row)
-        plot_deployments(runs, os.path.join(compare_dir, f'x0_{index}.png'),
-                         title=f'TSR deployment over DDS from x0 = {list(x0)}')
+    try:
+        for index, x0 in enumerate(COMPARISON_STARTS):
+            runs = {}
+            for controller in sorted(CONTROLLERS):
+                name = f'compare_{controller}_x{index}_{stamp()}'
+                bag_path = run(args, controller, x0, os.path.join(compare_dir, name), name)
+                row, runs[controller] = summarise(bag_path, controller, x0, args.steps,
+                                                  args.namespace)
+                rows.append(row)
+            plot_deployments(runs, os.path.join(compare_dir, f'x0_{index}.png'),
+                             title=f'TSR deployment over DDS from x0 = {list(x0)}')
+    except Interrupted:
+        if rows:                       # the table of the runs that finished
+            write_report(compare_dir, rows)
+        raise
     write_report(compare_dir, rows)
     return rows
 
@@ -245,6 +281,9 @@ def main(argv=None):
     args = parse_args(argv)
     try:
         rows = compare(args) if args.compare else deploy_one(args)
+    except Interrupted as stopped:
+        print(f'[deploy] {stopped}', file=sys.stderr)
+        return INTERRUPTED_STATUS
     except (ValueError, RuntimeError, TimeoutError, FileNotFoundError) as err:
         print(f'[deploy] failed: {err}', file=sys.stderr)
         return 1

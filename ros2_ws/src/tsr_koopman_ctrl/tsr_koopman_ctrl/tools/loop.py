@@ -25,6 +25,7 @@ from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, HELD_OUT_STARTS,
                                          run_figures)
 from tsr_koopman_ctrl.learning import multistep_errors
+from tsr_koopman_ctrl.learning.recorded import DEFAULT_STEPS as WINDOW_STEPS
 from tsr_koopman_ctrl.learning.recorded import find_bags, read_bags, windows_dataset
 from tsr_koopman_ctrl.model import DEFAULT_MODEL, LiftedModel
 from tsr_koopman_ctrl.tools import cli, deploy, retrain
@@ -188,18 +189,27 @@ def parser():
 def main(argv=None):
     p = parser()
     args = p.parse_args(argv)
-    args.workdir = os.path.join(args.out, args.plant)
+    # A plant given as a file gets the directory of its name without the extension.
+    args.workdir = os.path.join(
+        args.out, os.path.splitext(os.path.basename(os.path.normpath(args.plant)))[0])
     # Checked before the first deployment, which takes minutes, creates anything.
     try:
         plant_parameters(args.plant)
         LiftedModel.load(args.model)
     except ValueError as error:
         p.error(str(error))
+    if args.steps < WINDOW_STEPS:
+        p.error(f'--steps {args.steps}: retraining cuts {WINDOW_STEPS}-step windows from the '
+                f'deployments, which need at least that many steps')
     if os.path.isdir(args.workdir) and os.listdir(args.workdir):
         p.error(f'{args.workdir} holds an earlier loop (bags, models): give another --out or '
                 'remove it')
     try:
         result = run(args)
+    except deploy.Interrupted as stopped:
+        print(f'loop: {stopped}; stopped, the finished rounds stay in {args.workdir}',
+              file=sys.stderr)
+        return deploy.INTERRUPTED_STATUS
     except (RuntimeError, ValueError) as error:
         print(f'loop: {error}', file=sys.stderr)
         return 1

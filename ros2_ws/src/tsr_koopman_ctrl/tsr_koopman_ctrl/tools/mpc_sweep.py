@@ -51,7 +51,9 @@ def table(results):
 def parser():
     p = argparse.ArgumentParser(prog='mpc_sweep', description=__doc__.split('\n\n')[0])
     p.add_argument('--models', nargs='+', default=[DEFAULT_MODEL])
-    p.add_argument('--horizons', nargs='+', type=cli.integer(1), default=[5])
+    horizon = KoopmanMpc.Settings.__dataclass_fields__['horizon'].metadata
+    p.add_argument('--horizons', nargs='+', type=cli.integer(horizon['low'], horizon['high']),
+                   default=[5])
     p.add_argument('--steps', type=cli.STEPS, default=2000)
     p.add_argument('--out', default=os.path.join('out', 'mpc_sweep'), type=cli.output_dir)
     return p

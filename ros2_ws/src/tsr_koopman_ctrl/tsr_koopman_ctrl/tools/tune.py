@@ -45,6 +45,7 @@ from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import fields, parse_value
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS, HELD_OUT_STARTS
 from tsr_koopman_ctrl.evaluation.starts import SWING_TUNING_STARTS
+from tsr_koopman_ctrl.model import LiftedModel
 from tsr_koopman_ctrl.tools import cli
 from tsr_koopman_ctrl.tools.launcher import child_environment, one_thread_children
 from tsr_koopman_ctrl.tools.report import write_results
@@ -165,9 +166,11 @@ def fixed_settings(args):
     if any(len(pair) != 2 for pair in pairs):
         raise ValueError(f'--fix takes SETTING=VALUE, got {args.fix}')
     fixed = {name: parse_value(settings, name, value) for name, value in pairs}
-    # Out of range, not a choice, the wrong length: one line now rather than 60 trials that
-    # all score the penalty.
+    # Out of range, not a choice, the wrong length, a model that does not load: one line now
+    # rather than 60 trials that all score the penalty.
     settings(**fixed)
+    if 'model' in fixed:
+        LiftedModel.load(fixed['model'])
     searchable = {name for name, _, meta in fields(settings) if meta.get('tune') is not None}
     for name in args.also:
         if name not in searchable:
