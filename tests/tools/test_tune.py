@@ -155,3 +155,71 @@ def test_swing_starts_tune_on_six_starts_and_the_study_keeps_them(tmp_path, caps
     assert tune.main([*args, '--storage', journal,
                       '--study', 'linear_lqr_worst-ratio_swing-starts_swing0.8']) == 1
     assert 'was tuned on --starts swing, not comparison' in capsys.readouterr().err
+
+
+def _start_tune(tmp_path, trials=100000):
+    import subprocess
+    import sys
+    return subprocess.Popen(
+        [sys.executable, '-m', 'tsr_koopman_ctrl.tools.tune', '--law', 'linear_lqr', '--steps',
+         '200', '--trials', str(trials), '--jobs', '2', '--out', str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def _journal_size_once_trials_run(tmp_path, proc, timeout=60.0):
+    import time
+    journal = tmp_path / 'linear_lqr_swing0.8.journal'
+    deadline = time.monotonic() + timeout
+    while not journal.exists() or journal.stat().st_size < 20000:    # several trials in
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    return journal
+
+
+def test_ctrl_c_lets_the_trials_in_progress_finish_and_says_how_to_resume(tmp_path):
+    """Ctrl-C reaches the command and its workers (one process group). Before: five
+    tracebacks, and the trials in progress stored as FAIL, which counted against --trials."""
+    import collections
+    import os
+    import signal
+
+    import optuna
+    proc = _start_tune(tmp_path)
+    journal = _journal_size_once_trials_run(tmp_path, proc)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert 'Traceback' not in err and 'finishing the trials in progress' in err
+    assert f'tune: interrupted; {journal} keeps the finished trials' in err
+    storage = optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(journal)))
+    study = optuna.load_study(study_name='linear_lqr_swing0.8', storage=storage)
+    states = collections.Counter(t.state.name for t in study.trials)
+    assert set(states) == {'COMPLETE'} and states['COMPLETE'] > 2, states
+
+
+def test_killing_the_command_stops_its_workers(tmp_path):
+    """The workers went on filling the journal, unseen, after their command was killed."""
+    import os
+    import signal
+    import time
+    proc = _start_tune(tmp_path)
+    journal = _journal_size_once_trials_run(tmp_path, proc)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=10)
+    time.sleep(3.0)                      # a 200-step linear_lqr trial takes well under that
+    size = journal.stat().st_size
+    time.sleep(3.0)
+    alive = _group_alive(proc.pid)
+    if alive:                            # leave nothing running, whatever the outcome
+        os.killpg(proc.pid, signal.SIGKILL)
+    assert journal.stat().st_size == size and not alive
+
+
+def _group_alive(group):
+    import os
+    try:
+        os.killpg(group, 0)
+        return True
+    except ProcessLookupError:
+        return False

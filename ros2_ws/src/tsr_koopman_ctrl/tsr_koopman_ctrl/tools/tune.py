@@ -34,6 +34,7 @@ import argparse
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -240,7 +241,30 @@ def worker(args):
         return value
 
     if finished(study) < args.trials:
-        study.optimize(objective, callbacks=[MaxTrialsCallback(args.trials, states=states)])
+        # Ctrl-C reaches the workers too (one process group): the first lets the trial in
+        # progress finish and be stored, a second abandons it (the parent says which).
+        requested = []
+
+        def on_interrupt(signum, frame):
+            if requested:
+                raise KeyboardInterrupt
+            requested.append(signum)
+        signal.signal(signal.SIGINT, on_interrupt)
+        try:
+            study.optimize(objective, callbacks=[MaxTrialsCallback(args.trials, states=states),
+                                                 stop_when(requested, os.getppid())])
+        except KeyboardInterrupt:
+            pass
+
+
+def stop_when(requested, parent):
+    """An Optuna callback that stops the worker after its current trial when a stop was
+    `requested` (a list that is not empty) or `parent`, the tune command that started it, is
+    gone: a killed command must not leave its workers running unseen."""
+    def check(study, trial):
+        if requested or os.getppid() != parent:
+            study.stop()
+    return check
 
 
 def finished(study):
@@ -261,10 +285,17 @@ def run_workers(args, argv):
                                '--worker', str(i)], env=child_environment())
              for i in range(args.jobs)]
     with tqdm(total=args.trials, desc=study_name(args), unit='trial', file=sys.stdout) as bar:
-        while any(p.poll() is None for p in procs):
-            bar.n = min(finished(study), args.trials)
-            bar.refresh()
-            time.sleep(1.0)
+        try:
+            while any(p.poll() is None for p in procs):
+                bar.n = min(finished(study), args.trials)
+                bar.refresh()
+                time.sleep(1.0)
+        except KeyboardInterrupt:      # the workers got it too: they finish their trials
+            print('tune: finishing the trials in progress (Ctrl-C again abandons them)',
+                  file=sys.stderr, flush=True)
+            for proc in procs:
+                proc.wait()
+            raise
         bar.n = min(finished(study), args.trials)
         bar.refresh()
     if any(p.returncode for p in procs):
@@ -403,6 +434,10 @@ def main(argv=None):
     args.worker = 0
     try:
         study = run_workers(args, argv)
+    except KeyboardInterrupt:
+        print(f'tune: interrupted; {args.storage} keeps the finished trials: the same command '
+              'resumes the study', file=sys.stderr)
+        return 130
     except (RuntimeError, ValueError) as error:
         print(f'tune: {error}', file=sys.stderr)
         return 1
