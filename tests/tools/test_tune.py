@@ -81,10 +81,13 @@ def test_a_study_keeps_its_objective_and_names_it(tmp_path, capsys):
     assert tune.main([*args, '--objective', 'worst-ratio']) == 0
     assert (tmp_path / 'linear_lqr_worst-ratio_swing0.8.json').exists()
     journal = str(tmp_path / 'linear_lqr_worst-ratio_swing0.8.journal')
-    # The same journal and study under another objective: one line, no trial run.
+    # The same journal and study under another objective: one line, exit 2, no trial run and
+    # the journal as it was (create_study appended a record even for a study it loaded).
+    before = open(journal, 'rb').read()
     assert tune.main([*args, '--objective', 'settle', '--storage', journal,
-                      '--study', 'linear_lqr_worst-ratio_swing0.8']) == 1
+                      '--study', 'linear_lqr_worst-ratio_swing0.8']) == 2
     assert 'was tuned on --objective worst-ratio, not settle' in capsys.readouterr().err
+    assert open(journal, 'rb').read() == before
 
 
 def test_the_swing_objective_scores_the_largest_swing_of_settled_runs():
@@ -126,7 +129,7 @@ def test_a_study_keeps_its_penalty_and_names_it(tmp_path, capsys):
     assert summary['penalty'] == 'graded' and summary['best_value'] > tune.PENALTY_TAU
     assert 'the trial that missed least' in capsys.readouterr().out
     journal = str(tmp_path / 'linear_lqr_graded_swing0.1.journal')
-    assert tune.main([*args, '--storage', journal, '--study', 'linear_lqr_graded_swing0.1']) == 1
+    assert tune.main([*args, '--storage', journal, '--study', 'linear_lqr_graded_swing0.1']) == 2
     assert 'was tuned on --penalty graded, not flat' in capsys.readouterr().err
 
 
@@ -153,7 +156,7 @@ def test_swing_starts_tune_on_six_starts_and_the_study_keeps_them(tmp_path, caps
     journal = str(tmp_path / 'linear_lqr_worst-ratio_swing-starts_swing0.8.journal')
     capsys.readouterr()
     assert tune.main([*args, '--storage', journal,
-                      '--study', 'linear_lqr_worst-ratio_swing-starts_swing0.8']) == 1
+                      '--study', 'linear_lqr_worst-ratio_swing-starts_swing0.8']) == 2
     assert 'was tuned on --starts swing, not comparison' in capsys.readouterr().err
 
 

@@ -207,9 +207,14 @@ def open_study(args):
     else:
         os.makedirs(os.path.dirname(os.path.abspath(args.storage)), exist_ok=True)
         storage = JournalStorage(JournalFileBackend(args.storage))
-    study = optuna.create_study(study_name=study_name(args), storage=storage,
-                                direction='minimize', load_if_exists=True,
-                                sampler=optuna.samplers.TPESampler(seed=args.seed + args.worker))
+    sampler = optuna.samplers.TPESampler(seed=args.seed + args.worker)
+    if study_name(args) in optuna.study.get_all_study_names(storage):
+        # Loaded, not created again: create_study(load_if_exists=True) appends a record to a
+        # journal even when the study is there, so a refused resume changed the file.
+        study = optuna.load_study(study_name=study_name(args), storage=storage, sampler=sampler)
+    else:
+        study = optuna.create_study(study_name=study_name(args), storage=storage,
+                                    direction='minimize', load_if_exists=True, sampler=sampler)
     # A study holds one objective: settle times and ratios in one study would be compared.
     # Studies from before --penalty and --starts have no such attribute: they were flat and
     # tuned on the comparison starts.
@@ -425,13 +430,15 @@ def main(argv=None):
     try:
         args.fixed = fixed_settings(args)
         check_journal(args.storage)
+        if args.worker is None:        # a study tuned on another objective: refused here
+            args.worker = 0
+            open_study(args)
+        else:
+            worker(args)
+            return 0
     except ValueError as error:
         print(f'tune: {error}', file=sys.stderr)
         return 2
-    if args.worker is not None:
-        worker(args)
-        return 0
-    args.worker = 0
     try:
         study = run_workers(args, argv)
     except KeyboardInterrupt:
