@@ -149,15 +149,24 @@ def _listed_topics(bag):
     whose publisher never appeared has no channel in the files (its channel waits for the
     QoS), so after a kill -9 this is the only record of it."""
     try:
-        with open(os.path.join(bag, METADATA_FILE)) as f:
-            info = yaml.safe_load(f)['rosbag2_bagfile_information']
+        info = _bag_information(bag)
         listed = [entry['topic_metadata'] for entry in info['topics_with_message_count']]
         return [TopicStats(t['name'], t['type'],
                            yaml.safe_dump(t['offered_qos_profiles'], sort_keys=False)
                            if t.get('offered_qos_profiles') else '',
                            t.get('type_description_hash', '')) for t in listed]
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+    except METADATA_ERRORS:
         return []
+
+
+#: What reading a metadata.yaml that is missing, not YAML or not rosbag2's may raise.
+METADATA_ERRORS = (OSError, yaml.YAMLError, KeyError, TypeError)
+
+
+def _bag_information(bag):
+    """The rosbag2_bagfile_information mapping of the bag's metadata.yaml (METADATA_ERRORS)."""
+    with open(os.path.join(bag, METADATA_FILE)) as f:
+        return yaml.safe_load(f)['rosbag2_bagfile_information']
 
 
 def _check_written(path, count):
@@ -198,10 +207,9 @@ def _metadata_line(bag, report):
     if not os.path.isdir(bag) or not os.path.exists(path):
         return 'none'
     try:
-        with open(path) as f:
-            meta = yaml.safe_load(f)['rosbag2_bagfile_information']
+        meta = _bag_information(bag)
         listed, count = meta['relative_file_paths'], meta['message_count']
-    except (OSError, yaml.YAMLError, KeyError, TypeError) as err:
+    except METADATA_ERRORS as err:
         return f'unreadable ({type(err).__name__}: {err})'.replace('\n', ' ')
     line = f'{len(listed)} files, {count} messages'
     if count != report.messages or sorted(listed) != sorted(f.path for f in report.files):

@@ -64,6 +64,10 @@ def model_dir(text):
     return text
 
 
+#: Exit status of a tool stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
+INTERRUPTED_STATUS = 130
+
+
 def check_model_out(out, overwrite):
     """Refuse, unless `overwrite`, an --out that already holds a model (a shipped one, a
     finished training): a mistyped --out must not replace it silently (ValueError, one line)."""

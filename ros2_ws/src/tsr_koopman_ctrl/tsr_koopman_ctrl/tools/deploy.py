@@ -149,10 +149,6 @@ def stamp():
     return datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%d_%H%M%S')
 
 
-#: Exit status of a run stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
-INTERRUPTED_STATUS = 130
-
-
 class Interrupted(Exception):
     """A deployment stopped by Ctrl-C: its nodes are stopped and its bag is closed, holding the
     steps run so far. Callers keep what finished and stop (a loop or a comparison must not go
@@ -283,7 +279,7 @@ def main(argv=None):
         rows = compare(args) if args.compare else deploy_one(args)
     except Interrupted as stopped:
         print(f'[deploy] {stopped}', file=sys.stderr)
-        return INTERRUPTED_STATUS
+        return cli.INTERRUPTED_STATUS
     except (ValueError, RuntimeError, TimeoutError, FileNotFoundError) as err:
         print(f'[deploy] failed: {err}', file=sys.stderr)
         return 1

@@ -209,7 +209,7 @@ def main(argv=None):
     except deploy.Interrupted as stopped:
         print(f'loop: {stopped}; stopped, the finished rounds stay in {args.workdir}',
               file=sys.stderr)
-        return deploy.INTERRUPTED_STATUS
+        return cli.INTERRUPTED_STATUS
     except (RuntimeError, ValueError) as error:
         print(f'loop: {error}', file=sys.stderr)
         return 1

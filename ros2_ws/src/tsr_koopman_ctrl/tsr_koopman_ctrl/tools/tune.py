@@ -278,10 +278,10 @@ def finished(study):
     return sum(t.state in done for t in study.get_trials(deepcopy=False))
 
 
-def run_workers(args, argv):
-    """--jobs processes on the one study, with a progress bar over its finished trials."""
+def run_workers(args, argv, study):
+    """--jobs processes on the one `study` (opened by main), with a progress bar over its
+    finished trials."""
     from tqdm import tqdm
-    study = open_study(args)
     if len(study.trials) == 0:
         # The law's own settings first. Enqueued here, before any worker starts: a worker that
         # checked for an empty study itself could find its sibling's first trial there.
@@ -432,7 +432,7 @@ def main(argv=None):
         check_journal(args.storage)
         if args.worker is None:        # a study tuned on another objective: refused here
             args.worker = 0
-            open_study(args)
+            study = open_study(args)
         else:
             worker(args)
             return 0
@@ -440,11 +440,11 @@ def main(argv=None):
         print(f'tune: {error}', file=sys.stderr)
         return 2
     try:
-        study = run_workers(args, argv)
+        study = run_workers(args, argv, study)
     except KeyboardInterrupt:
         print(f'tune: interrupted; {args.storage} keeps the finished trials: the same command '
               'resumes the study', file=sys.stderr)
-        return 130
+        return cli.INTERRUPTED_STATUS
     except (RuntimeError, ValueError) as error:
         print(f'tune: {error}', file=sys.stderr)
         return 1
