@@ -117,6 +117,36 @@ class RosClient:
         while time.monotonic() < deadline and not (until and until()):
             self.executor.spin_once(timeout_sec=0.05)
 
+    def call(self, service_type, name, request, timeout=10.0):
+        """Call a service and wait for its response."""
+        client = self.node.create_client(service_type, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                raise TimeoutError(f'no service {name} after {timeout} s')
+            future = client.call_async(request)
+            self.spin_until(future.done, timeout, what=f'the response of {name}')
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def set_parameters(self, node_name, values, timeout=10.0):
+        """Set parameters of a running node: [(successful, reason)] in the order given."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+        request = SetParameters.Request(parameters=[
+            Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
+        response = self.call(SetParameters, f'{node_name}/set_parameters', request, timeout)
+        return [(r.successful, r.reason) for r in response.results]
+
+    def get_parameters(self, node_name, names, timeout=10.0):
+        """{name: value} of a running node's parameters."""
+        from rcl_interfaces.srv import GetParameters
+        from rclpy.parameter import parameter_value_to_python
+        response = self.call(GetParameters, f'{node_name}/get_parameters',
+                             GetParameters.Request(names=list(names)), timeout)
+        return {name: parameter_value_to_python(value)
+                for name, value in zip(names, response.values)}
+
     def close(self):
         self.executor.shutdown()
         self.node.destroy_node()

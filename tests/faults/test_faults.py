@@ -61,7 +61,7 @@ def start_loop(start_node, tmp_path, name, steps=100_000, flush_period=1.0, watc
                           {'output_dir': str(tmp_path), 'bag_name': name,
                            'flush_period': flush_period}, namespace=namespace)
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
-               {'controller': 'linear_lqr', 'wait_for_subscribers': 2}, namespace=namespace)
+               {'law': 'linear_lqr', 'wait_for_subscribers': 2}, namespace=namespace)
     start_node('tsr_sim', 'sim_node', 'tsr_sim',
                {'max_steps': steps, 'progress_every': 0,
                 'wait_for_subscribers': 2 + watchers}, namespace=namespace)
@@ -100,7 +100,7 @@ def test_controller_killed_and_restarted_in_lockstep(ros, start_node, tmp_path):
                                  ros_io.LATCHED_QOS)
     sim = start_node('tsr_sim', 'sim_node', 'tsr_sim',
                      {'progress_every': 0, 'republish_period': 0.2})
-    params = {'controller': 'linear_lqr'}
+    params = {'law': 'linear_lqr'}
     first = start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller', params)
     ros.spin_until(lambda: status and status[-1].step > 300, timeout=30, what='300 steps')
     first.kill()

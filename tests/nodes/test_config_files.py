@@ -18,7 +18,7 @@ def test_controller_config_is_derived_from_the_law_settings():
     """One declaration: the file equals what the settings classes write (regenerate it with
     python -m tsr_koopman_ctrl.tools.config)."""
     assert (CONFIG / 'controller.yaml').read_text() == example_yaml()
-    params = yaml.safe_load(example_yaml())['tsr_controller']['ros__parameters']
+    params = yaml.safe_load(example_yaml())['/**/tsr_controller']['ros__parameters']
     from tsr_koopman_ctrl.control import KoopmanMpc, LinearisedLqr
     assert params['koopman_mpc']['horizon'] == KoopmanMpc.Settings().horizon
     assert params['linear_lqr']['q'] == list(LinearisedLqr.Settings().q)
@@ -27,7 +27,7 @@ def test_controller_config_is_derived_from_the_law_settings():
 def test_recorder_config_records_the_loop_topics():
     from tsr_sim import wire
     params = yaml.safe_load((CONFIG / 'recorder.yaml').read_text())
-    assert params['tsr_recorder']['ros__parameters']['topics'] == list(wire.LOOP_TOPIC_TYPES)
+    assert params['/**/tsr_recorder']['ros__parameters']['topics'] == list(wire.LOOP_TOPIC_TYPES)
 
 
 def test_the_sim_example_holds_the_simulator_s_names_and_defaults():
@@ -37,7 +37,7 @@ def test_the_sim_example_holds_the_simulator_s_names_and_defaults():
     from tsr_sim.plant import PLANT_PARAMETERS, SIMULATOR_PARAMETERS
     from tsr_sim.units import Scale
     path = ROOT / 'ros2_ws/src/tsr_sim/config/sim.yaml'
-    values = yaml.safe_load(path.read_text())['tsr_sim']['ros__parameters']
+    values = yaml.safe_load(path.read_text())['/**/tsr_sim']['ros__parameters']
     scale = Scale()
     defaults = {name: spec[0] for name, spec in {**PLANT_PARAMETERS,
                                                  **SIMULATOR_PARAMETERS}.items()}

@@ -11,6 +11,9 @@ pytestmark = pytest.mark.ros
 
 SCALE = Scale()
 SAFE_U = 3.0
+#: A timed simulator applies its safe tension until the first command: from near the target it
+#: holds the tether (from the paper's short tether it would tumble and halt).
+NEAR_TARGET = [0.0, 0.0, -0.05, 0.0]
 
 
 def watch_loop(ros):
@@ -42,10 +45,10 @@ def publish_until_answered(ros, state_pub, state_msg, commands, interval=2.0, ti
 
 
 def test_killing_the_controller_trips_both_timeouts_and_a_restart_resumes(ros, start_node):
-    controller_params = {'controller': 'linear_lqr', 'state_timeout': 0.5}
+    controller_params = {'law': 'linear_lqr', 'state_timeout': 0.5}
     sim = start_node('tsr_sim', 'sim_node', 'tsr_sim',
                      {'mode': 'timed', 'rate_hz': 50.0, 'command_timeout': 0.3,
-                      'progress_every': 0, 'max_steps': 100_000})
+                      'initial_state': NEAR_TARGET, 'progress_every': 0, 'max_steps': 100_000})
     first = start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
                        controller_params)
     seen = watch_loop(ros)
@@ -78,7 +81,7 @@ def test_the_safe_tension_before_any_state_answers_no_step(ros, start_node):
     from tsr_koopman_ctrl.control import closed_loop, make_controller
     _, want_u = closed_loop(make_controller('linear_lqr'), dynamics.PAPER_INITIAL_STATE, 1)
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
-               {'controller': 'linear_lqr', 'state_timeout': 0.2})
+               {'law': 'linear_lqr', 'state_timeout': 0.2})
     node = ros.node
     commands, statuses = [], []
     state_pub = node.create_publisher(TsrState, wire.STATE_TOPIC, ros_io.LOOP_QOS)
@@ -110,19 +113,19 @@ def test_a_missing_params_file_fails_at_start_with_one_line(start_node, tmp_path
 
 
 @pytest.mark.parametrize('params, message', [
-    ({'controller': 'koopman_lqr', 'koopman_lqr': {'model': '/nonexistent/model'}},
+    ({'law': 'koopman_lqr', 'koopman_lqr': {'model': '/nonexistent/model'}},
      '/nonexistent/model: no such model directory'),
-    ({'controller': 'koopman_mpc', 'koopman_mpc': {'horizon': 0}},
+    ({'law': 'koopman_mpc', 'koopman_mpc': {'horizon': 0}},
      'koopman_mpc.horizon'),
-    ({'controller': 'linear_lqr', 'linear_lqr': {'q': [1.0, 2.0]}},
+    ({'law': 'linear_lqr', 'linear_lqr': {'q': [1.0, 2.0]}},
      'linear_lqr.q needs 4 numbers'),
-    ({'controller': 'pid'}, "unknown controller 'pid'"),
+    ({'law': 'pid'}, "unknown law 'pid'"),
     # ROS drops a parameter no one declares: a misspelt setting, of the running law or not.
-    ({'controller': 'koopman_mpc', 'koopman_mpc': {'horizn': 8}},
+    ({'law': 'koopman_mpc', 'koopman_mpc': {'horizn': 8}},
      "parameter 'koopman_mpc.horizn': koopman_mpc has no setting 'horizn' (did you mean "
      "'koopman_mpc.horizon'?)"),
-    ({'controller': 'linear_lqr', 'koopman_mpc': {'horizn': 8}}, "'koopman_mpc.horizn'"),
-    ({'controller': 'linear_lqr', 'observer': {'disturbnce': 'none'}},
+    ({'law': 'linear_lqr', 'koopman_mpc': {'horizn': 8}}, "'koopman_mpc.horizn'"),
+    ({'law': 'linear_lqr', 'observer': {'disturbnce': 'none'}},
      "observer has no setting 'disturbnce'")])
 def test_bad_controller_configuration_fails_at_start_with_one_line(start_node, tmp_path,
                                                                    params, message):
@@ -147,7 +150,7 @@ def test_a_repeated_state_gets_its_command_again_without_running_the_law_twice(r
     # matched both ways. Matched on this side alone was not enough: a status published before
     # the controller's writer matched was lost (`.ci/run`, 2026-12-01: 1 of 396).
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
-               {'controller': 'linear_lqr', 'state_timeout': 0.5})
+               {'law': 'linear_lqr', 'state_timeout': 0.5})
     node = ros.node
     commands, statuses, safe = [], [], set()
 

@@ -131,7 +131,8 @@ def test_reset_service_restarts_from_the_requested_state(ros, start_node):
 @pytest.mark.parametrize('rate_hz', [200.0])
 def test_timed_mode_applies_safe_tension_without_commands(ros, start_node, rate_hz):
     start_node('tsr_sim', 'sim_node', 'tsr_sim',
-               dict(SIM_PARAMS, mode='timed', rate_hz=rate_hz, command_timeout=0.2))
+               dict(SIM_PARAMS, mode='timed', rate_hz=rate_hz, command_timeout=0.2,
+                    initial_state=[0.0, 0.0, -0.05, 0.0]))   # the safe tension holds it
     driver = SimDriver(ros, answer=False)
     driver.wait_for_sim()
     ros.spin_until(lambda: driver.status is not None and driver.status.command_timeouts > 0,

@@ -43,7 +43,7 @@ def run_tool(tool, argv):
     ('deploy', ['--out', '{text_file}'], 'notes.txt exists and is not a directory'),
     ('deploy', ['--bags', '{text_file}/bags'], 'notes.txt is not a directory'),
     ('deploy', ['--model', 'no_such_model'], 'no_such_model: no such model directory'),
-    ('deploy', ['--controller', 'linear_lqr', '--model', 'koopman_default'],
+    ('deploy', ['--law', 'linear_lqr', '--model', 'koopman_default'],
      '--model: linear_lqr uses no model'),
     ('deploy', ['--namespace', 'bad!name'], "--namespace '/bad!name': Invalid namespace: "
      "namespace must not contain characters other than alphanumerics, '_', or '/': "

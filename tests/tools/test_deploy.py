@@ -23,7 +23,7 @@ def deploy_args(tmp_path, domain_id, *extra):
 
 def test_deployment_over_dds_matches_the_ros_free_loop_and_leaves_a_bag(tmp_path, domain_id):
     steps = 400
-    assert deploy.main(deploy_args(tmp_path, domain_id, '--controller', 'linear_lqr',
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--law', 'linear_lqr',
                                    '--steps', str(steps))) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
     loop = read_loop(str(bag_path))
@@ -50,6 +50,31 @@ def test_deployment_over_dds_matches_the_ros_free_loop_and_leaves_a_bag(tmp_path
     assert (run_dir / 'deployment.png').stat().st_size > 10_000
     (row,) = json.loads((run_dir / 'summary.json').read_text())
     assert row['compute_median_us'] == pytest.approx(np.median(loop.compute_time) * 1e6)
+    assert_one_time_base(bag_path, steps)
+
+
+def assert_one_time_base(bag_path, steps):
+    """Every node ran on the simulator's clock: log times and header stamps are sim time
+    (t = tau / Omega from 0), and a command or status carries its state's stamp."""
+    from tsr_sim.units import Scale
+    from tsr_koopman_ctrl.bag import BagReader
+    step_ns = Scale().tau_to_seconds(dynamics.PAPER_STEP) * 1e9
+    end_ns = (steps + 1) * step_ns
+    stamped = {}
+    for message, decoded in BagReader(str(bag_path)).decoded():
+        assert 0 <= message.log_time_ns <= end_ns, message.topic
+        stamp = getattr(decoded, 'header', None)
+        if stamp is None:
+            continue
+        ns = stamp.stamp.sec * 10 ** 9 + stamp.stamp.nanosec
+        assert 0 <= ns <= end_ns, message.topic
+        step = getattr(decoded, 'step', None)
+        if step is not None and step < 2 ** 63 and message.topic.startswith('/tsr/'):
+            stamped.setdefault(message.topic.split('/')[-1], {})[step] = ns
+    states = stamped['state']
+    assert states[steps] == pytest.approx(steps * step_ns, abs=1.0)
+    for topic in ('tension_cmd', 'controller_status'):
+        assert all(states[step] == ns for step, ns in stamped[topic].items()), topic
 
 
 def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(tmp_path, domain_id):
@@ -72,7 +97,7 @@ def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(tmp
 
 def test_loop_under_a_namespace_reads_back_from_the_bag(tmp_path, domain_id):
     steps = 100
-    assert deploy.main(deploy_args(tmp_path, domain_id, '--controller', 'linear_lqr',
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--law', 'linear_lqr',
                                    '--steps', str(steps), '--namespace', '/tsr1')) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
     loop = read_loop(str(bag_path))
@@ -138,7 +163,7 @@ def test_excitation_and_run_info_are_recorded(tmp_path, domain_id):
     commands are the law's plus exactly that excitation."""
     from tsr_koopman_ctrl.control.excitation import Excitation
     steps = 200
-    assert deploy.main(deploy_args(tmp_path, domain_id, '--controller', 'linear_lqr',
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--law', 'linear_lqr',
                                    '--steps', str(steps), '--set', 'excitation.kind=prbs',
                                    '--set', 'observer.disturbance=none',
                                    '--set', 'excitation.amplitude=0.5',
@@ -166,7 +191,7 @@ def test_a_plant_variant_over_dds_is_the_ros_free_one(tmp_path, domain_id):
     loop equals the ROS-free loop on the same plant file, step for step."""
     from tsr_sim.plant import plant_parameters
     steps = 300
-    assert deploy.main(deploy_args(tmp_path, domain_id, '--controller', 'linear_lqr',
+    assert deploy.main(deploy_args(tmp_path, domain_id, '--law', 'linear_lqr',
                                    '--steps', str(steps), '--plant', 'actuator_weak')) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
     loop = read_loop(str(bag_path))
@@ -181,6 +206,20 @@ def test_a_plant_variant_over_dds_is_the_ros_free_one(tmp_path, domain_id):
     assert np.abs(nominal_x - want_x).max() > 1e-3     # the variant does change the run
 
 
+def recorded_states(bags):
+    """States a running recorder has flushed so far, from its bag's metadata.yaml (rewritten
+    at every flush)."""
+    import yaml
+    for metadata in bags.glob('*/metadata.yaml'):
+        try:
+            info = yaml.safe_load(metadata.read_text())['rosbag2_bagfile_information']
+        except (OSError, TypeError, KeyError, yaml.YAMLError):
+            return 0
+        return sum(t['message_count'] for t in info['topics_with_message_count']
+                   if t['topic_metadata']['name'].endswith('/tsr/state'))
+    return 0
+
+
 def test_ctrl_c_closes_the_bag_summarises_the_steps_run_and_exits_130(tmp_path, domain_id):
     """Ctrl-C used to end `deploy` with status 0, and `loop` went on with the cut-short bag."""
     import os
@@ -188,14 +227,13 @@ def test_ctrl_c_closes_the_bag_summarises_the_steps_run_and_exits_130(tmp_path, 
     import subprocess
     import sys
     import time
-    command = [sys.executable, '-m', 'tsr_koopman_ctrl.tools.deploy', '--controller',
+    command = [sys.executable, '-m', 'tsr_koopman_ctrl.tools.deploy', '--law',
                'linear_lqr', '--steps', '100000', *deploy_args(tmp_path, domain_id)]
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60.0
-    while not list((tmp_path / 'bags').glob('*/*.mcap')):     # the recorder has started
+    deadline = time.monotonic() + 120.0
+    while recorded_states(tmp_path / 'bags') < 100:      # some steps into the bag, under load
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
         time.sleep(0.2)
-    time.sleep(3.0)                       # some steps into the bag
     os.kill(proc.pid, signal.SIGINT)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, (out, err)
@@ -207,3 +245,34 @@ def test_ctrl_c_closes_the_bag_summarises_the_steps_run_and_exits_130(tmp_path, 
     (run_dir,) = (tmp_path / 'out').iterdir()
     summary = json.loads((run_dir / 'summary.json').read_text())
     assert summary[0]['steps'] == int(loop.step[-1])
+
+
+def test_deploy_bags_hold_every_step_from_0_under_load(tmp_path, domain_id):
+    """Two processes keep both cores busy while three deployments run: each bag holds every
+    state from step 0, its command and its controller status (the simulator starts once the
+    controller and the recorder read, at the DDS level, what it and the controller publish)."""
+    import subprocess
+    import sys
+    busy = [subprocess.Popen([sys.executable, '-c', 'while True: pass']) for _ in range(2)]
+    try:
+        steps = 200
+        for run in range(3):
+            out = tmp_path / f'run{run}'
+            assert deploy.main(['--out', str(out / 'out'), '--bags', str(out / 'bags'),
+                                '--domain', str(domain_id), '--law', 'linear_lqr',
+                                '--steps', str(steps)]) == 0
+            (bag_path,) = (out / 'bags').iterdir()
+            loop = read_loop(str(bag_path))
+            assert loop.step.tolist() == list(range(steps + 1)), run
+            assert np.isfinite(loop.u[:steps]).all(), run
+            statuses = {m.step for _, m in _decoded(bag_path, 'tsr_msgs/msg/ControllerStatus')}
+            assert set(range(steps)) <= statuses, run
+    finally:
+        for process in busy:
+            process.kill()
+            process.wait()
+
+
+def _decoded(bag_path, type_name):
+    from tsr_koopman_ctrl.bag import BagReader
+    return [(m, d) for m, d in BagReader(str(bag_path)).decoded() if m.type == type_name]

@@ -48,6 +48,7 @@ setup(
             'mpc_sweep = tsr_koopman_ctrl.tools.mpc_sweep:main',
             'bag = tsr_koopman_ctrl.tools.bag:main',
             'frontier = tsr_koopman_ctrl.tools.frontier:main',
+            'config = tsr_koopman_ctrl.tools.config:main',
         ],
     },
 )

@@ -31,6 +31,10 @@ EQUILIBRIUM_TENSION = 3.0
 #: sampled range (Table 1). Every limit in the project (the simulator's command check, the
 #: controller's clamp, the MPC's bound, the frontier) derives from this one number.
 TENSION_LIMIT = 5.0
+#: |theta| past which the robot is tumbling, not librating: beyond the local horizontal the
+#: gravity gradient (-3 sin(theta) cos(theta)) turns the tether away from the deployed
+#: equilibrium, towards the opposite vertical. The simulator halts a run there.
+TUMBLING_SWING = 0.5 * math.pi
 #: The paper's sample period in tau (Section IV): one RK4 step of the learned model.
 PAPER_STEP = 0.01
 #: The paper's initial deployment state (Section IV-D): l = 0.01, l' = 0.5.

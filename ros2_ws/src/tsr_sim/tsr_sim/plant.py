@@ -13,6 +13,7 @@ import numpy as np
 
 from tsr_sim import dynamics, variants
 from tsr_sim.units import Scale
+from tsr_sim.wire import STATE_FRAME
 
 
 class Rejection(enum.Enum):
@@ -43,6 +44,9 @@ class PlantConfig:
     scale: Scale = field(default_factory=Scale)
     max_tension: float = math.inf         # N; a command above it is rejected
     max_steps: int = 0                    # 0: run for ever
+    #: |theta| past which the robot is tumbling (`TUMBLING_SWING`): the run halts as it does
+    #: when the state leaves the model's domain.
+    max_swing: float = dynamics.TUMBLING_SWING
     process_noise_std: tuple = ()         # per state component, dimensionless, added per step
     sensor_noise_std: tuple = ()          # per state component, dimensionless, on measurements
     seed: int = 0
@@ -60,6 +64,8 @@ class PlantConfig:
             raise ValueError(f'substeps must be >= 1, got {self.substeps}')
         if not self.max_tension > 0.0:
             raise ValueError(f'max_tension must be > 0, got {self.max_tension}')
+        if not self.max_swing > 0.0:
+            raise ValueError(f'max_swing must be > 0, got {self.max_swing}')
         if self.variant.eccentricity > 0.0 and self.initial_state.size != dynamics.PLANAR_DIM:
             raise ValueError('the eccentric-orbit variant is planar only')
         for name in ('process_noise_std', 'sensor_noise_std'):
@@ -80,6 +86,8 @@ PLANT_PARAMETERS = {
     'step': (dynamics.PAPER_STEP, 'sample period h [tau]', 1e-6, 10.0),
     'substeps': (10, 'RK4 substeps per sample period', 1, 10000),
     'max_steps': (0, 'stop after this many steps (0: never)', 0, 10 ** 12),
+    'max_swing': (dynamics.TUMBLING_SWING, '|theta| past which the robot is tumbling: the run '
+                  'halts as when the state leaves the domain [rad]', 0.01, 100.0),
     'process_noise_std': ([0.0], 'dimensionless std per state component, added per step '
                           '([0.0]: none)', None, None),
     'sensor_noise_std': ([0.0], 'dimensionless std per component of the published state '
@@ -121,6 +129,8 @@ SIMULATOR_PARAMETERS = {
     'exit_on_finish': (False, 'shut the node down when max_steps is reached or the state '
                        'leaves the domain', None, None),
     'rate_hz': (100.0, 'timed: simulation steps per wall second', 0.01, 1e5),
+    'frame_id': (STATE_FRAME, 'frame of the published state (header.frame_id): the orbital '
+                 'frame', None, None),
 }
 
 #: What a plant file (config/plants/*.yaml, `deploy --plant`, `closed_loop(plant=...)`) may
@@ -160,7 +170,8 @@ def config_from_parameters(values, scale=None):
     return PlantConfig(
         initial_state=initial, step=v['step'], substeps=v['substeps'], scale=scale,
         max_tension=values.get('max_tension', scale.u_to_tension(dynamics.TENSION_LIMIT)),
-        max_steps=v['max_steps'], process_noise_std=noise(v['process_noise_std']),
+        max_steps=v['max_steps'], max_swing=v['max_swing'],
+        process_noise_std=noise(v['process_noise_std']),
         sensor_noise_std=noise(v['sensor_noise_std']), seed=v['seed'], variant=variant)
 
 
@@ -187,6 +198,9 @@ class Plant:
             return f'reset state needs {self.config.initial_state.size} components'
         if not dynamics.in_domain(state):
             return 'reset state is outside the model domain (needs finite values and l > 0)'
+        if abs(state[dynamics.THETA]) > self.config.max_swing:
+            return (f'reset state swings past max_swing {self.config.max_swing:g} rad '
+                    '(tumbling)')
         self.state = state.copy()
         self.actuator = None   # the actuator starts at rest on the first command
         self.anomaly = self.config.variant.initial_anomaly
@@ -231,11 +245,13 @@ class Plant:
             nxt, (actuator, anomaly) = augmented[:-2], augmented[-2:]
         with np.errstate(all='ignore'):
             nxt = nxt + self._noise(self.config.process_noise_std)
+        where = f'at step {self.step_index + 1} (tau {self.tau + self.config.step:.3f})'
         if not dynamics.in_domain(nxt):
-            self.status = Status.HALTED_OUT_OF_DOMAIN
-            self.message = (f'state left the model domain at step {self.step_index + 1} '
-                            f'(tau {self.tau + self.config.step:.3f}): {nxt.tolist()}; '
-                            'integration stopped, reset to continue')
+            self.halt(f'state left the model domain {where}: {nxt.tolist()}')
+            return
+        if abs(nxt[dynamics.THETA]) > self.config.max_swing:
+            self.halt(f'tumbling {where}: |theta| = {abs(nxt[dynamics.THETA]):.3f} rad past '
+                      f'max_swing {self.config.max_swing:g}')
             return
         self.state = nxt
         if not variant.nominal:
@@ -244,6 +260,10 @@ class Plant:
         if self.config.max_steps and self.step_index >= self.config.max_steps:
             self.status = Status.FINISHED
             self.message = f'finished after {self.step_index} steps (tau {self.tau:.3f})'
+
+    def halt(self, what):
+        self.status = Status.HALTED_OUT_OF_DOMAIN
+        self.message = f'{what}; integration stopped, reset to continue'
 
     def measure(self):
         """Return the measured state: the true state plus sensor noise, if configured."""

@@ -1,7 +1,15 @@
-"""ROS glue shared by the nodes: QoS, parameter declaration, the node life cycle.
+"""ROS glue shared by the nodes: QoS, parameters, health on /diagnostics, the node life cycle.
 
 Kept apart from the ROS-free core (dynamics, units, plant, wire) so that the core imports without
 rclpy. Topic names and message <-> array conversion are in `tsr_sim.wire`.
+
+Conventions every node follows here:
+- watchdogs and housekeeping timers run on the steady clock (`steady_timer`), so a node works
+  with `use_sim_time` true or false: a timer on sim time would wait for a /clock that a stalled
+  or absent simulator never sends;
+- every parameter is either applied live when set or refused with a reason (`declare`:
+  read-only unless the node applies it; `Parameters` checks and applies the live ones);
+- health goes out on /diagnostics about once a second (`Health`).
 """
 
 import difflib
@@ -9,8 +17,12 @@ import signal
 import sys
 import time
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
 import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -21,10 +33,11 @@ from tsr_sim.units import DEFAULT_MASS, PAPER_ORBIT_RATE, PAPER_TETHER_LENGTH, S
 #: State and command: reliable, so lockstep never loses a step; shallow, so no backlog builds.
 LOOP_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                       history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
-#: Publishers of the loop keep their last 10 messages for late joiners: a recorder whose reader
-#: matches a moment after the first steps (discovery is not symmetric) still records step 0.
+#: Publishers of the loop keep their last messages for late joiners, and enough of them that a
+#: recorder falling behind under load (a reliable writer drops what is past its depth, acked or
+#: not) loses nothing: at ~1 000 lockstep steps/s, 1 000 messages are a second of slack.
 #: Loop subscribers stay volatile (LOOP_QOS): a controller or simulator must not act on history.
-LOOP_PUBLISHER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+LOOP_PUBLISHER_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                                 history=HistoryPolicy.KEEP_LAST,
                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: Commands into the simulator: reliable and keep-all, so a burst (valid or not) is received and
@@ -35,11 +48,22 @@ COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: /diagnostics, as diagnostic_updater publishes it (an absolute name, shared by every node).
+DIAGNOSTICS_TOPIC = '/diagnostics'
+DIAGNOSTICS_PERIOD = 1.0
 
 
-def declare(node, name, default, description, low=None, high=None, step=None):
-    """Declare a parameter with a descriptor (and a range for numbers); return its value."""
-    descriptor = ParameterDescriptor(description=description)
+def steady_timer(node, period, callback):
+    """A timer on the steady clock, whether or not the node uses sim time."""
+    return node.create_timer(period, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
+def declare(node, name, default, description, low=None, high=None, step=None, read_only=True):
+    """Declare a parameter with a descriptor (and a range for numbers); return its value.
+    Read-only unless the node applies a new value when it is set (`Parameters`): setting a
+    read-only parameter on a running node is refused with rcl's 'read-only' reason, not
+    accepted and ignored."""
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
     if low is not None:
         if isinstance(default, int) and not isinstance(default, bool):
             descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
@@ -69,13 +93,93 @@ def warn_near_misses(node):
                                       f"ignored (did you mean '{close[0]}'?)")
 
 
-def declare_scale(node):
+def declare_scale(node, read_only=True):
     """Declare orbit_rate, tether_length and mass (every node converting units needs them)."""
     return Scale(
-        orbit_rate=declare(node, 'orbit_rate', PAPER_ORBIT_RATE, 'Omega [rad/s]', 1e-9, 1.0),
+        orbit_rate=declare(node, 'orbit_rate', PAPER_ORBIT_RATE, 'Omega [rad/s]', 1e-9, 1.0,
+                           read_only=read_only),
         tether_length=declare(node, 'tether_length', PAPER_TETHER_LENGTH,
-                              'full tether length L [m]', 1e-3, 1e9),
-        mass=declare(node, 'mass', DEFAULT_MASS, 'robot mass m [kg]', 1e-6, 1e9))
+                              'full tether length L [m]', 1e-3, 1e9, read_only=read_only),
+        mass=declare(node, 'mass', DEFAULT_MASS, 'robot mass m [kg]', 1e-6, 1e9,
+                     read_only=read_only))
+
+
+class Parameters:
+    """Set-parameter requests on a running node: each name the node applies live has a
+    handler `check(value) -> reason or None` and `apply(value)`; `refuse(name) -> reason or
+    None` may refuse others for the node's own reason (a lifecycle state). Read-only names
+    never get here: rcl refuses them first. Checks run before any value changes, so a request
+    is applied whole or not at all."""
+
+    def __init__(self, node, refuse=None):
+        self.node, self.refuse, self.handlers = node, refuse, {}
+        node.add_on_set_parameters_callback(self.on_set)
+        node.add_post_set_parameters_callback(self.on_applied)
+
+    def live(self, name, apply, check=None):
+        self.handlers[name] = (check, apply)
+
+    def on_set(self, parameters):
+        for parameter in parameters:
+            reason = self.refuse(parameter.name) if self.refuse else None
+            check = self.handlers.get(parameter.name, (None, None))[0]
+            if reason is None and check is not None:
+                reason = check(parameter.value)
+            if reason:
+                return SetParametersResult(successful=False,
+                                           reason=f'{parameter.name}: {reason}')
+        return SetParametersResult(successful=True)
+
+    def on_applied(self, parameters):
+        for parameter in parameters:
+            apply = self.handlers.get(parameter.name, (None, None))[1]
+            if apply is not None:
+                apply(parameter.value)
+                self.node.get_logger().info(f'parameter {parameter.name} set to '
+                                            f'{parameter.value!r}')
+
+
+class MatchedReaders:
+    """The readers a publisher has matched at the DDS level (its `matched` events), which is
+    what delivery depends on. The ROS graph (get_subscription_count) can list a subscription
+    before the writer has matched its reader: a message published then never reaches it."""
+
+    def __init__(self):
+        self.count = 0
+        self.callbacks = PublisherEventCallbacks(matched=self.on_matched)
+
+    def on_matched(self, status):
+        self.count = status.current_count
+
+
+class Health:
+    """A node's health on /diagnostics (diagnostic_msgs/DiagnosticArray), once a second on
+    the steady clock: `report()` returns (level, message, {key: value}), level one of
+    DiagnosticStatus.OK, WARN, ERROR. The status is named '<node's full name>: <task>'."""
+
+    OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
+
+    def __init__(self, node, task, report, period=DIAGNOSTICS_PERIOD):
+        self.node, self.report = node, report
+        self.name = f'{node.get_fully_qualified_name()}: {task}'
+        self.publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self.timer = steady_timer(node, period, self.publish)
+
+    def publish(self):
+        level, message, values = self.report()
+        status = DiagnosticStatus(level=level, name=self.name, message=message,
+                                  hardware_id=self.node.get_name(),
+                                  values=[KeyValue(key=str(key), value=_text(value))
+                                          for key, value in values.items()])
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.node.get_clock().now().to_msg()
+        self.publisher.publish(array)
+
+
+def _text(value):
+    if isinstance(value, float):
+        return f'{value:.6g}'
+    return str(value)
 
 
 def spin_until_quiet(executor, progress, quiet=0.3, limit=10.0):
@@ -89,7 +193,25 @@ def spin_until_quiet(executor, progress, quiet=0.3, limit=10.0):
             last, last_change = progress(), time.monotonic()
 
 
-def run_node(make_node, on_exit=None, args=None, drain=None):
+def usage_requested(args):
+    """True if the command line asks for help (-h, --help before any --ros-args)."""
+    args = sys.argv[1:] if args is None else list(args)
+    own = args[:args.index('--ros-args')] if '--ros-args' in args else args
+    return any(arg in ('-h', '--help') for arg in own)
+
+
+def print_usage(node_class, doc):
+    """What `<node> --help` prints: the node's description and how to give parameters (a node
+    started for --help would create its bag, its publishers, its DDS participant)."""
+    name = getattr(node_class, 'NODE_NAME', node_class.__name__)
+    summary = (doc or '').strip().split('\n\n')[0]
+    print(f'{summary}\n\nusage: <executable> [--ros-args [-p NAME:=VALUE ...] '
+          f'[--params-file FILE] [-r __ns:=/NAMESPACE] [-r __node:=NAME]]\n\n'
+          f'Node name {name}. `ros2 param describe` lists every parameter with its '
+          'description, range and whether it is read-only; the README has the tables.')
+
+
+def run_node(make_node, on_exit=None, args=None, drain=None, start=None):
     """The node life cycle every node of the project shares (Jazzy).
 
     Spins on rclpy's EventsExecutor (measured: a ping-pong ~1.6x and a raw-subscription writer
@@ -103,12 +225,17 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     (`warn_near_misses`). A bad parameter (out of range, wrong type, invalid value) or model
     while constructing, or a --params-file that cannot be read
     (`parameter_file.params_file_problem`, checked before rcl would log its own [ERROR] line),
-    is one clear line on stderr and exit code 2.
+    is one clear line on stderr and exit code 2; so is an error `start(node)` returns (a
+    managed node brought up at start: its failed transition). `-h`/`--help` prints the usage
+    and starts nothing.
     """
     from rclpy.experimental import EventsExecutor
     from rclpy.impl.implementation_singleton import rclpy_implementation
     from rclpy.signals import SignalHandlerOptions
     RCLError = rclpy_implementation.RCLError
+    if usage_requested(args):
+        print_usage(make_node, getattr(sys.modules.get(make_node.__module__), '__doc__', ''))
+        return 0
     problem = params_file_problem(sys.argv if args is None else args)
     if problem:
         print(f'cannot start: {problem}', file=sys.stderr, flush=True)
@@ -131,6 +258,13 @@ def run_node(make_node, on_exit=None, args=None, drain=None):
     warn_near_misses(node)
     executor = EventsExecutor()
     executor.add_node(node)
+    error = start(node) if start is not None else None
+    if error:
+        print(f'cannot start: {error}', file=sys.stderr, flush=True)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        return 2
     try:
         while not stop and rclpy.ok() and not getattr(node, 'done', False):
             executor.spin_once(timeout_sec=0.1)

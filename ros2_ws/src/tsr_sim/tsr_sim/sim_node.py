@@ -2,14 +2,23 @@
 
 Modes:
   lockstep  advance one step per accepted command answering the current step: deterministic,
-            as fast as DDS allows. With no command for `republish_period` wall seconds, the
-            current state is published again (a late controller still gets it) with a warning;
-            the controller's answer to that repeat, a copy of the command already accepted,
-            is dropped without one, and so is a command that answers no state
-            (`wire.NO_STEP`: the controller's safe tension).
+            as fast as DDS allows. The first state goes out once `wait_for_subscribers` readers
+            of the state topic have matched at the DDS level (the ROS graph can list a reader
+            before it can receive). With no command for `republish_period` wall seconds, the
+            same state message is published again (a late controller still gets it); the
+            controller's answer to that repeat, a copy of the command already accepted, is
+            dropped without a word, and so is a command that answers no state (`wire.NO_STEP`:
+            the controller's safe tension).
   timed     advance at `rate_hz` wall-clock steps per second (time scale = rate_hz * step /
             Omega sim seconds per wall second) holding the latest command; with no valid command
             for `command_timeout` wall seconds, apply `safe_tension` and count a timeout.
+
+The simulator is the clock: /clock carries the plant's time (t = tau / Omega), from the start
+and while it waits, so nodes on sim time start too. Its own timers run on the steady clock, so
+it runs with `use_sim_time` true or false. A state that leaves the model's domain or tumbles
+(|theta| > `max_swing`) halts the run (status HALTED_OUT_OF_DOMAIN, an ERROR on /diagnostics);
+`tsr/reset` starts a new run from step 0. Parameters that shape the plant or the run are
+read-only on a running node; the scheduling ones are applied when set (`LIVE`).
 
 All maths and command checks are in tsr_sim.plant (ROS-free); this file converts and schedules.
 """
@@ -26,35 +35,52 @@ from tsr_msgs.msg import RunInfo, SimStatus, TensionCommand, TsrState
 from tsr_msgs.srv import ResetSim
 
 from tsr_sim import dynamics
-from tsr_sim.plant import (config_from_parameters, Plant, PLANT_PARAMETERS,
+from tsr_sim.plant import (config_from_parameters, Plant, PLANT_PARAMETERS, Rejection,
                            SIMULATOR_PARAMETERS, Status)
-from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, LATCHED_QOS,
-                            LOOP_PUBLISHER_QOS, run_node)
+from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, Health, LATCHED_QOS,
+                            LOOP_PUBLISHER_QOS, MatchedReaders, Parameters, run_node,
+                            steady_timer)
 from tsr_sim.wire import (CLOCK_TOPIC, NO_STEP, RESET_SERVICE, RUN_INFO_TOPIC, run_info_msg,
-                          scale_dict, SIM_STATUS_TOPIC, STATE_TOPIC, state_to_msg, TENSION_TOPIC)
+                          scale_dict, SIM_STATUS_TOPIC, STATE_TOPIC, state_to_msg,
+                          TENSION_TOPIC)
+
+#: Parameters applied when set on a running simulator; the others are read-only there.
+LIVE = ('rate_hz', 'command_timeout', 'safe_tension', 'republish_period', 'progress_every',
+        'wait_for_subscribers', 'exit_on_finish', 'max_steps')
+#: Republish periods without the first command of a run before the lockstep simulator warns:
+#: a controller's first solve or a late discovery takes a moment, which is no reason to warn.
+IDLE_WARNING_PERIODS = 10
 
 
 class SimNode(Node):
 
+    NODE_NAME = 'tsr_sim'
+
     def __init__(self):
-        super().__init__('tsr_sim')
+        super().__init__(self.NODE_NAME)
         self.mode = self._declare('mode')
         if self.mode not in ('lockstep', 'timed'):
             raise ValueError(f"parameter mode must be 'lockstep' or 'timed', got {self.mode!r}")
         self.plant_name = self._declare('plant')
         self.plant = Plant(self._plant_config())
         self.scale = self.plant.config.scale
+        self.frame_id = self._declare('frame_id')
         self.command_timeout = self._declare('command_timeout')
         self.safe_tension = self._declare(
             'safe_tension', self.scale.u_to_tension(dynamics.EQUILIBRIUM_TENSION))
         self.republish_period = self._declare('republish_period')
         self.progress_every = self._declare('progress_every')
         self.wait_for_subscribers = self._declare('wait_for_subscribers')
+        self.exit_on_finish = self._declare('exit_on_finish')
+        self.rate_hz = self._declare('rate_hz')
         self.done = False   # run_node stops spinning once set
         self.last_accepted = None   # (step, tension) of the last command accepted in lockstep
-        self.exit_on_finish = self._declare('exit_on_finish')
+        self.accepted_at_start = 0  # commands accepted before this run began
+        self.last_state = None      # the state message of the current step, as published
 
-        self.state_pub = self.create_publisher(TsrState, STATE_TOPIC, LOOP_PUBLISHER_QOS)
+        self.readers = MatchedReaders()
+        self.state_pub = self.create_publisher(TsrState, STATE_TOPIC, LOOP_PUBLISHER_QOS,
+                                               event_callbacks=self.readers.callbacks)
         self.status_pub = self.create_publisher(SimStatus, SIM_STATUS_TOPIC, LATCHED_QOS)
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
         self.create_subscription(TensionCommand, TENSION_TOPIC, self.on_command, COMMAND_QOS)
@@ -63,30 +89,46 @@ class SimNode(Node):
             self.get_fully_qualified_name(), 'simulator', self.configuration(),
             self.sim_stamp()))
 
-        rate_hz = self._declare('rate_hz')
         self.held_tension = self.safe_tension
         self.command_timeouts = 0
-        self.last_command_wall = time.monotonic()
+        self.last_command_wall = self.state_published_wall = time.monotonic()
         self.next_idle_warning = 0.0
+        self.tick_timer = None
         if self.mode == 'lockstep':
-            self.create_timer(self.republish_period, self.on_idle_check)
+            self.tick_timer = steady_timer(self, self.republish_period, self.on_idle_check)
         else:
             self.get_logger().info(
-                f'timed mode: {rate_hz} steps/s, time scale '
-                f'{rate_hz * self.plant.config.step / self.scale.orbit_rate:.1f}x real time')
-            self.create_timer(1.0 / rate_hz, self.on_tick)
-        self.create_timer(1.0, self.publish_status)
+                f'timed mode: {self.rate_hz} steps/s, time scale '
+                f'{self.rate_hz * self.plant.config.step / self.scale.orbit_rate:.1f}x real '
+                'time')
+            self.tick_timer = steady_timer(self, 1.0 / self.rate_hz, self.on_tick)
+        steady_timer(self, 1.0, self.publish_status)
+        self.reported = self.counters()
+        self.health = Health(self, 'simulator', self.diagnose)
+        self.parameters = Parameters(self)
+        self.parameters.live('rate_hz', self.set_rate, self.check_timed('rate_hz'))
+        self.parameters.live('republish_period', self.set_republish_period,
+                             self.check_lockstep('republish_period'))
+        self.parameters.live('command_timeout', lambda v: setattr(self, 'command_timeout', v))
+        self.parameters.live('safe_tension', self.set_safe_tension, self.check_safe_tension)
+        self.parameters.live('progress_every', lambda v: setattr(self, 'progress_every', v))
+        self.parameters.live('wait_for_subscribers',
+                             lambda v: setattr(self, 'wait_for_subscribers', v))
+        self.parameters.live('exit_on_finish', lambda v: setattr(self, 'exit_on_finish', v))
+        self.parameters.live('max_steps', self.set_max_steps)
         self.get_logger().info(
             f'{self.mode} simulator, h = {self.plant.config.step} tau '
             f'({self.scale.tau_to_seconds(self.plant.config.step):.2f} s), '
             f'x0 = {self.plant.state.tolist()}, tension unit {self.scale.tension_unit:.4g} N')
+        self.publish_clock()
         self.publish_state()
         self.publish_status()
 
     def _plant_config(self):
         """Declare the plant's parameters (`plant.PLANT_PARAMETERS`, the one declaration)."""
         scale = declare_scale(self)
-        values = {name: declare(self, name, default, description, low, high)
+        values = {name: declare(self, name, default, description, low, high,
+                                read_only=name not in LIVE)
                   for name, (default, description, low, high) in PLANT_PARAMETERS.items()}
         values['max_tension'] = self._declare(
             'max_tension', scale.u_to_tension(dynamics.TENSION_LIMIT))
@@ -96,7 +138,43 @@ class SimNode(Node):
         """Declare one of `plant.SIMULATOR_PARAMETERS` (a None default is `computed_default`)."""
         default, description, low, high = SIMULATOR_PARAMETERS[name]
         return declare(self, name, computed_default if default is None else default,
-                       description, low, high)
+                       description, low, high, read_only=name not in LIVE)
+
+    # Live parameters ----------------------------------------------------------------------
+
+    def check_timed(self, name):
+        return lambda value: (None if self.mode == 'timed'
+                              else f'only a timed simulator has a {name}')
+
+    def check_lockstep(self, name):
+        return lambda value: (None if self.mode == 'lockstep'
+                              else f'only a lockstep simulator has a {name}')
+
+    def check_safe_tension(self, value):
+        limit = self.plant.config.max_tension
+        return None if value <= limit else f'must be <= max_tension ({limit:.4g} N)'
+
+    def set_rate(self, value):
+        self.rate_hz = value
+        self.restart_timer(1.0 / value, self.on_tick)
+
+    def set_republish_period(self, value):
+        self.republish_period = value
+        self.restart_timer(value, self.on_idle_check)
+
+    def restart_timer(self, period, callback):
+        self.destroy_timer(self.tick_timer)
+        self.tick_timer = steady_timer(self, period, callback)
+
+    def set_safe_tension(self, value):
+        if self.held_tension == self.safe_tension:      # holding it now: hold the new one
+            self.held_tension = value
+        self.safe_tension = value
+
+    def set_max_steps(self, value):
+        self.plant.config.max_steps = value
+
+    # The loop ------------------------------------------------------------------------------
 
     def configuration(self):
         """What the bag records about this simulator (RunInfo): the plant and the units."""
@@ -104,7 +182,7 @@ class SimNode(Node):
         return {'mode': self.mode, 'plant': self.plant_name, 'step': config.step,
                 'substeps': config.substeps, 'initial_state': config.initial_state.tolist(),
                 'scale': scale_dict(self.scale), 'max_tension': config.max_tension,
-                'max_steps': config.max_steps,
+                'max_steps': config.max_steps, 'max_swing': config.max_swing,
                 'process_noise_std': list(config.process_noise_std),
                 'sensor_noise_std': list(config.sensor_noise_std), 'seed': config.seed,
                 'variant': dataclasses.asdict(config.variant)}
@@ -150,20 +228,38 @@ class SimNode(Node):
         self.step(self.held_tension)
 
     def on_idle_check(self):
-        """Lockstep side of a command timeout: warn (at once, then every 10 s) and publish the
-        state again."""
-        idle = time.monotonic() - self.last_command_wall
-        if self.plant.status is not Status.RUNNING or idle < self.republish_period:
+        """Lockstep: publish the state again when its command is late (the first state once
+        the loop is wired), and warn when it stays away (at IDLE_WARNING_PERIODS, then every
+        10 s)."""
+        if self.plant.status is not Status.RUNNING:
             return
-        if self.loop_wired() and time.monotonic() >= self.next_idle_warning:
+        if self.last_state is None:
+            self.publish_clock()      # nodes on sim time wait for it before they start
+            self.publish_state()
+            return
+        idle = self.idle_seconds()
+        if idle < self.republish_period:
+            return
+        if idle >= self.warn_after() and time.monotonic() >= self.next_idle_warning:
             self.get_logger().warning(
                 f'lockstep: no tension command for step {self.plant.step_index} for '
                 f'{idle:.1f} s (is the controller running?)')
             self.next_idle_warning = time.monotonic() + 10.0
-        self.publish_state()
+        self.state_pub.publish(self.last_state)
+
+    def warn_after(self):
+        """Lockstep: seconds without a command before it is a warning. A controller's first
+        solve, or its discovery, takes a moment: patience until the first command of a run,
+        then a warning after one republish period."""
+        periods = 1 if self.plant.accepted > self.accepted_at_start else IDLE_WARNING_PERIODS
+        return periods * self.republish_period
+
+    def idle_seconds(self):
+        """Lockstep: wall seconds since the current state went out unanswered."""
+        return time.monotonic() - max(self.last_command_wall, self.state_published_wall)
 
     def loop_wired(self):
-        return self.state_pub.get_subscription_count() >= self.wait_for_subscribers
+        return self.readers.count >= self.wait_for_subscribers
 
     def step(self, tension):
         self.plant.advance(tension)
@@ -173,6 +269,7 @@ class SimNode(Node):
             if self.exit_on_finish:
                 self.done = True   # the run is over; the status and the bag say how
             return
+        self.publish_clock()
         self.publish_state()
         if self.progress_every and self.plant.step_index % self.progress_every == 0:
             x = self.plant.state
@@ -188,16 +285,26 @@ class SimNode(Node):
     def sim_stamp(self):
         return Time(seconds=self.scale.tau_to_seconds(self.plant.tau)).to_msg()
 
+    def publish_clock(self):
+        self.clock_pub.publish(Clock(clock=self.sim_stamp()))
+
     def publish_state(self):
+        """Publish the current step's state (measured once per step: a republished state is
+        the same message, so a controller can tell a repeat from a new run)."""
         if self.mode == 'lockstep' and not self.loop_wired():
             self.get_logger().info(
-                f'waiting for {self.wait_for_subscribers} subscribers to {STATE_TOPIC}',
-                throttle_duration_sec=5.0)
+                f'waiting for {self.wait_for_subscribers} readers of {STATE_TOPIC} '
+                f'({self.readers.count} matched)', throttle_duration_sec=5.0)
+            self.last_state = None
             return
-        stamp = self.sim_stamp()
-        self.clock_pub.publish(Clock(clock=stamp))
         si = self.scale.state_to_si(self.plant.measure())
-        self.state_pub.publish(state_to_msg(si, self.plant.step_index, stamp))
+        self.last_state = state_to_msg(si, self.plant.step_index, self.sim_stamp(),
+                                       self.frame_id)
+        self.state_published_wall = time.monotonic()
+        self.state_pub.publish(self.last_state)
+
+    def counters(self):
+        return (dict(self.plant.counters), self.command_timeouts)
 
     def publish_status(self):
         plant = self.plant
@@ -208,6 +315,36 @@ class SimNode(Node):
         for rejection, count in plant.counters.items():
             setattr(msg, f'rejected_{rejection.value}', count)
         self.status_pub.publish(msg)
+
+    def diagnose(self):
+        """Health (README, *Diagnostics*): ERROR when the run halted (the state left the
+        domain or tumbled); WARN when commands were rejected or timed out since the last
+        report, or lockstep waits for its readers or a command; OK otherwise."""
+        plant = self.plant
+        rejected, timeouts = self.counters()
+        last_rejected, last_timeouts = self.reported
+        self.reported = (rejected, timeouts)
+        values = {'status': plant.status.name.lower(), 'mode': self.mode, 'step': plant.step_index,
+                  'tau': plant.tau, 'commands_accepted': plant.accepted,
+                  'command_timeouts': timeouts, 'state_readers': self.readers.count}
+        values.update({f'rejected_{r.value}': n for r, n in rejected.items()})
+        new = {r.value: rejected[r] - last_rejected[r] for r in Rejection
+               if rejected[r] > last_rejected[r]}
+        if plant.status is Status.HALTED_OUT_OF_DOMAIN:
+            return Health.ERROR, plant.message, values
+        if new:
+            return Health.WARN, f'commands rejected: {new}', values
+        if timeouts > last_timeouts:
+            return Health.WARN, 'no valid command: safe tension applied', values
+        if plant.status is Status.RUNNING and self.mode == 'lockstep':
+            if not self.loop_wired():
+                return Health.WARN, (f'waiting for {self.wait_for_subscribers} readers of '
+                                     f'{STATE_TOPIC}'), values
+            idle = self.idle_seconds()
+            if idle >= self.warn_after():
+                return Health.WARN, (f'no command for step {plant.step_index} for '
+                                     f'{idle:.1f} s'), values
+        return Health.OK, plant.message, values
 
     def on_reset(self, request, response):
         si = [request.theta, request.theta_rate, request.length, request.length_rate,
@@ -222,8 +359,10 @@ class SimNode(Node):
         self.last_command_wall = time.monotonic()
         self.held_tension = self.safe_tension
         self.last_accepted = None   # step numbers start again
+        self.accepted_at_start = self.plant.accepted
         self.publish_status()
         if error is None:
+            self.publish_clock()
             self.publish_state()
         return response
 

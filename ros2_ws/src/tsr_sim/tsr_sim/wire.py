@@ -21,6 +21,10 @@ EXCITATION_TOPIC = 'tsr/excitation'
 CLOCK_TOPIC = '/clock'
 RESET_SERVICE = 'tsr/reset'
 
+#: TsrState.header.frame_id: the orbital frame the message's angles are measured in (the local
+#: vertical and the orbit plane), the simulator's `frame_id` parameter by default.
+STATE_FRAME = 'orbit'
+
 #: TensionCommand.step of a command that answers no state: the controller's safe tension, sent
 #: when no state comes (the largest uint64, which no state's step reaches). A lockstep
 #: simulator ignores it and waits for the answer to its state; a timed one, or hardware,
@@ -71,11 +75,12 @@ def state_from_msg(msg, dim=None):
     return np.array(values, dtype=float)
 
 
-def state_to_msg(si_state, step, stamp):
+def state_to_msg(si_state, step, stamp, frame_id=STATE_FRAME):
     """SI state array (4 or 6 components) -> TsrState."""
     from tsr_msgs.msg import TsrState
     msg = TsrState()
     msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
     msg.step = int(step)
     msg.theta, msg.theta_rate, msg.length, msg.length_rate = (float(v) for v in si_state[:4])
     if si_state.shape[-1] == SPATIAL_DIM:

@@ -182,6 +182,9 @@ class BagWriter:
         self._channel_ids = {}
         self.qos_pending = set()       # topics whose channel waits for their offered QoS
         self._pending_since = None     # clock time of the oldest message not yet on disk
+        #: `clock` time of the last write to the OS (a chunk written, a flush), or None.
+        self.last_flush_wall = None
+        self._closed_bytes = 0         # bytes of the files finished before the current one
         self._open_file()
 
     def add_topic(self, info: TopicInfo, qos_pending=False):
@@ -227,6 +230,7 @@ class BagWriter:
             # now, not when Python's buffer happens to fill.
             stream.flush()
             self._pending_since = None
+            self.last_flush_wall = self.clock()
         elif self._pending_since is None:
             self._pending_since = self.clock()
         elif self.flush_period:
@@ -249,6 +253,7 @@ class BagWriter:
             return
         self._writer.flush()
         self._pending_since = None
+        self.last_flush_wall = self.clock()
         self._write_metadata()
 
     def close(self):
@@ -269,6 +274,12 @@ class BagWriter:
     @property
     def message_count(self):
         return sum(self.topic_counts.values())
+
+    @property
+    def bytes_written(self):
+        """Bytes handed to the files so far (what a crash would leave, at most)."""
+        current = self._stream.written if self._writer is not None else 0
+        return self._closed_bytes + current
 
     def _file_full(self, current, log_time_ns):
         too_big = self.max_file_bytes and self._stream.written >= self.max_file_bytes
@@ -299,6 +310,7 @@ class BagWriter:
 
     def _finish_file(self):
         finish_mcap(self._stream, self._writer, self._metadata())
+        self._closed_bytes += self._stream.written
         self._pending_since = None
 
     def _split(self):

@@ -33,6 +33,8 @@ def planar_state(x):
 class Law:
     name = ''
     Settings = LawSettings
+    #: The learned model the law plans with (`model.LiftedModel`), or None.
+    model = None
 
     def __init__(self, settings=None, *, h=dynamics.PAPER_STEP, u_max=dynamics.TENSION_LIMIT,
                  **overrides):
@@ -49,3 +51,11 @@ class Law:
     def compute(self, x):
         """The tension for the measured state x (`planar_state` checks it)."""
         raise NotImplementedError
+
+    def applied(self, command):
+        """The command actually sent after `compute` (an excitation added, a clamp): a law
+        with memory of its commands (an observer) takes it from here; the others ignore it."""
+
+    def diagnostics(self):
+        """{name: value} a law reports about itself on /diagnostics (e.g. an estimate)."""
+        return {}

@@ -15,6 +15,7 @@ from tsr_sim.plant import config_from_parameters, Plant, plant_parameters, Statu
 from tsr_sim.units import Scale
 
 from tsr_koopman_ctrl.control.limiter import TensionLimiter
+from tsr_koopman_ctrl.control.step import ControlStep, Outcome
 
 
 def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
@@ -41,20 +42,16 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     params = dict(plant or {}, initial_state=[float(v) for v in x0], step=h, substeps=substeps)
     sim = Plant(config_from_parameters(params, scale))
     plant_scale = sim.config.scale
-    limiter = TensionLimiter(u_max)
-    controller.reset()
-    if excitation is not None:
-        excitation.reset()
+    step = ControlStep(controller, TensionLimiter(u_max), excitation)
+    step.reset()
     states, tensions = [sim.state.copy()], []
     for _ in range(steps):
         measured = scale.state_from_si(plant_scale.state_to_si(sim.measure()))
-        u = controller.compute(measured)
-        if excitation is not None and excitation.active:
-            u = limiter(u + excitation.next())
-            if hasattr(controller, 'applied'):   # the observer must know what was sent
-                controller.applied(u)
-        else:
-            u = limiter(u)
+        result = step(measured)
+        if result.outcome is Outcome.NON_FINITE_OUTPUT:
+            raise ValueError(f'{controller.name} produced a non-finite tension at step '
+                             f'{len(tensions)}')
+        u = result.tension
         tension = scale.u_to_tension(u)
         if sim.accept(tension) is not None:
             raise ValueError(f'the plant refused the clamped tension {tension} N')

@@ -110,3 +110,7 @@ class OffsetFree:
         """Tell the observer the command actually sent, when it is not the one `compute`
         returned (an excitation was added, or a clamp changed it)."""
         self.last_command = float(command)
+
+    def diagnostics(self):
+        return {**self.law.diagnostics(), 'disturbance_estimate': self.observer.disturbance,
+                'disturbance': self.observer_settings.disturbance}

@@ -10,6 +10,8 @@ from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
 from tsr_koopman_ctrl.control.physics_nmpc import PhysicsNmpc
 from tsr_koopman_ctrl.control.settings import build
 
+#: The law the controller node, deploy and the main job run unless told otherwise.
+DEFAULT_LAW = 'koopman_mpc'
 CONTROLLERS = {law.name: law for law in (LinearisedLqr, FractionalOrderPd, KoopmanLqr,
                                          KoopmanMpc, KoopmanNmpc, PhysicsNmpc)}
 #: The controller's settings sections that are not laws: the observer (offset-free control)
@@ -27,7 +29,7 @@ def law_class(name):
     try:
         return CONTROLLERS[name]
     except KeyError:
-        raise ValueError(f'unknown controller {name!r}; choose from {sorted(CONTROLLERS)}')
+        raise ValueError(f'unknown law {name!r}; choose from {sorted(CONTROLLERS)}')
 
 
 def make_controller(name, settings=None, observer=None, **overrides):

@@ -126,6 +126,14 @@ class KoopmanConfig:
         return cls(**values)
 
 
+def weights_sha256(directory):
+    """sha256 of a model directory's weights file: what names a model's weights in a bag's
+    RunInfo and in a retrained model's provenance."""
+    import hashlib
+    with open(pathlib.Path(directory) / WEIGHTS_FILE, 'rb') as weights:
+        return hashlib.sha256(weights.read()).hexdigest()
+
+
 def mlp_shapes(prefix, inputs, hidden, layers, outputs):
     """Tensor names and shapes of an MLP stored as torch.nn.Sequential(Linear, act, ...)."""
     sizes = [inputs] + [hidden] * layers + [outputs]

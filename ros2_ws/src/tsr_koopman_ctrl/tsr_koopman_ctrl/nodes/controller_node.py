@@ -1,228 +1,469 @@
-"""Controller node: answers every TSR state with a tension command for the same step.
+"""Controller node, a managed (lifecycle) node: answers every TSR state with a tension command
+for the same step.
+
+Lifecycle (rclpy.lifecycle, as ros2_control and nav2 manage their nodes):
+  configure   reads the parameters, loads the model and builds the law, its observer and the
+              excitation (a bad law, setting or model fails the transition with one line);
+              publishes the RunInfo the bag keeps
+  activate    resets the law, its observer and the excitation, and starts commanding
+  deactivate  stops commanding: the node publishes `safe_tension` once (step NO_STEP: the
+              equilibrium tension, which holds a deployed tether) and then nothing until it
+              is activated again; a timed simulator or hardware holds that tension, a lockstep
+              simulator waits
+  cleanup     frees the law and its model
+With `autostart` (default true, as nav2's lifecycle manager brings nodes up) the node configures
+and activates itself at start, so `ros2 run` is one command; a failure then stops the process
+with one line (exit 2).
 
 SI state in, SI tension out; the law (`tsr_koopman_ctrl.control`) works in the paper's
-dimensionless variables, converted through `tsr_sim.units`. Parameters: `controller` picks the
-law, whose settings are declared as `<law>.<setting>` from the law's Settings class (the one
-declaration; `ros2 param describe` shows descriptions and ranges). Every command is clamped to
-[0, max_tension] (the law's own bound is the same number) and the clamps counted. A non-finite
-state gets no command. With no state for `state_timeout` wall seconds the node publishes
-`safe_tension` (default: the equilibrium tension, u = 3) every `state_timeout` seconds, until
-states return. It answers no state, so its step is `tsr_sim.wire.NO_STEP`: a lockstep
-simulator ignores it, and a bag reader cannot take it for a step's command (stamped with the
-last step, the one sent before any state passed for step 0's answer). A state repeated exactly
-(same step, same values: a lockstep simulator publishes the state again when its command is
-late, e.g. behind a slow first solve) gets the command it already got, resent, without running
-the law again: a second compute would advance the law's plan and observer twice for one step.
-Each state's outcome and the law's compute time go out on `tsr/controller_status` (recorded in
-the bag). A bad law, setting or model stops the node at start with one line (exit 2), and so
-does a parameter under a law's, `observer.` or `excitation.` that names no setting there (ROS
-would drop it without a word); parameters of other sections are left to the nodes they are for.
+dimensionless variables, converted through `tsr_sim.units`. Every step goes through
+`control.step.ControlStep` (the law, the excitation, the clamp to [0, max_tension], the law told
+what was sent), the step the ROS-free `closed_loop` takes too. A new run of the simulator (a
+reset: the step going back, or the same step with another state) resets the law and its
+observer first, so a reset run repeats the first. A state repeated exactly (a lockstep
+simulator republishes it when its command is late) gets the command it already got, resent,
+without running the law again. A non-finite state gets no command. With no state for
+`state_timeout` wall seconds the node publishes `safe_tension` every `state_timeout` seconds
+with step `tsr_sim.wire.NO_STEP`, until states return. Commands and statuses carry the stamp of
+the state they answer, so a bag has one time base. Each state's outcome and the law's compute
+time go out on `tsr/controller_status`, health on /diagnostics.
+
+Parameters: `law` picks the law; every law's settings are declared as `<law>.<setting>` from its
+Settings class (the one declaration), with `observer.*` and `excitation.*`. Those and the units
+scale are read at configure: set them on an unconfigured node (refused otherwise, with the
+reason). `max_tension`, `safe_tension`, `state_timeout` and `wait_for_subscribers` are applied
+live. A parameter under a law's, `observer.` or `excitation.` section that names no setting
+there stops the node at start with one line (ROS would drop it without a word).
 """
 
 from collections import deque
 import dataclasses
-import hashlib
 import math
-import os
 import sys
 import time
 
 import numpy as np
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from tsr_msgs.msg import ControllerStatus, Excitation, RunInfo, TensionCommand, TsrState
 from tsr_sim import dynamics
-from tsr_sim.ros_io import (declare, declare_scale, given_parameter_names, LATCHED_QOS,
-                            LOOP_PUBLISHER_QOS, LOOP_QOS, run_node)
+from tsr_sim.ros_io import (declare, declare_scale, given_parameter_names, Health, LATCHED_QOS,
+                            LOOP_PUBLISHER_QOS, LOOP_QOS, MatchedReaders, Parameters, run_node,
+                            steady_timer)
+from tsr_sim.plant import SCALE_PARAMETERS
+from tsr_sim.units import Scale
 from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, NO_STEP, RUN_INFO_TOPIC,
                           run_info_msg, scale_dict, STATE_TOPIC, state_from_msg, TENSION_TOPIC,
                           tension_msg)
 
 from tsr_koopman_ctrl.control import CONTROLLERS, make_controller, TensionLimiter
 from tsr_koopman_ctrl.control.excitation import Excitation as ExcitationSource
-from tsr_koopman_ctrl.control.excitation import ExcitationSettings
-from tsr_koopman_ctrl.control.offset_free import ObserverSettings
-from tsr_koopman_ctrl.control.registry import law_class, settings_sections
+from tsr_koopman_ctrl.control.registry import DEFAULT_LAW, law_class, settings_sections
 from tsr_koopman_ctrl.control.settings import fields, unknown_setting_names
-from tsr_koopman_ctrl.model.model_file import WEIGHTS_FILE
+from tsr_koopman_ctrl.control.step import ControlStep, Outcome
+from tsr_koopman_ctrl.model.model_file import weights_sha256
 
-DEFAULT_CONTROLLER = 'koopman_mpc'
+#: Compute times kept for the median and p99 on /diagnostics.
+COMPUTE_WINDOW = 1000
+#: Parameters applied when set; the others (law, settings, scale) are read at configure.
+LIVE = ('max_tension', 'safe_tension', 'state_timeout', 'wait_for_subscribers',
+        'wait_for_status_subscribers')
+#: Lifecycle state ids (lifecycle_msgs/State) and their labels.
+UNCONFIGURED, INACTIVE, ACTIVE = 1, 2, 3
+STATE_LABELS = {UNCONFIGURED: 'unconfigured', INACTIVE: 'inactive', ACTIVE: 'active', 4:
+                'finalized'}
 
 
-def declare_law_settings(node, settings_class, law):
-    """Declare `<law>.<setting>` for every setting of the law; return {setting: value}."""
-    values = {}
+def declare_settings(node, section, settings_class):
+    """Declare `<section>.<setting>` for every setting of a settings class, read at configure.
+    A number with only a lower bound gets the largest upper bound a descriptor can hold, so
+    every number has its range."""
     for name, default, meta in fields(settings_class):
         scalar = not isinstance(default, tuple)
-        value = declare(node, f'{law}.{name}', default if scalar else list(default),
-                        meta['description'], *((meta['low'], meta['high']) if scalar
-                                               and meta['low'] is not None
-                                               and meta['high'] is not None else ()))
-        values[name] = value if scalar else tuple(value)
+        low, high = meta['low'], meta['high']
+        if scalar and low is not None and high is None and not isinstance(default, bool):
+            high = 2 ** 62 if isinstance(default, int) else sys.float_info.max
+        bounds = (low, high) if scalar and low is not None and high is not None else ()
+        declare(node, f'{section}.{name}', default if scalar else list(default),
+                meta['description'], *bounds, read_only=False)
+
+
+def settings_values(node, section, settings_class):
+    """{setting: value} of a section as the node's parameters hold it now."""
+    values = {}
+    for name, default, _ in fields(settings_class):
+        value = node.get_parameter(f'{section}.{name}').value
+        values[name] = tuple(value) if isinstance(default, tuple) else value
     return values
 
 
-class ControllerNode(Node):
+class ControllerNode(LifecycleNode):
+
+    NODE_NAME = 'tsr_controller'
 
     def __init__(self):
-        super().__init__('tsr_controller')
+        super().__init__(self.NODE_NAME)
         # A misspelt setting would be dropped by ROS and the law deployed with its default.
         problems = unknown_setting_names(given_parameter_names(self), settings_sections())
         if problems:
             raise ValueError('; '.join(problems))
-        self.law_name = declare(self, 'controller', DEFAULT_CONTROLLER,
-                                f'control law: one of {sorted(CONTROLLERS)}')
-        settings_class = law_class(self.law_name).Settings
-        settings = settings_class(**declare_law_settings(self, settings_class, self.law_name))
-        self.scale = declare_scale(self)
-        max_tension = declare(self, 'max_tension',
-                              self.scale.u_to_tension(dynamics.TENSION_LIMIT),
-                              f'output clamp [N] (default: u = {dynamics.TENSION_LIMIT:g})',
-                              1e-9, 1e9)
-        self.limiter = TensionLimiter(self.scale.tension_to_u(max_tension))
-        self.observer_settings = ObserverSettings(**declare_law_settings(
-            self, ObserverSettings, 'observer'))
-        self.controller = make_controller(self.law_name, settings, self.observer_settings,
-                                          u_max=self.limiter.u_max)
-        self.excitation = ExcitationSource(ExcitationSettings(**declare_law_settings(
-            self, ExcitationSettings, 'excitation')))
+        self.autostart = declare(self, 'autostart', True, 'configure and activate at start '
+                                 '(false: wait for a lifecycle manager)')
+        declare(self, 'law', DEFAULT_LAW, f'control law: one of {sorted(CONTROLLERS)} (read at '
+                'configure)', read_only=False)
+        for section, settings_class in settings_sections().items():
+            declare_settings(self, section, settings_class)
+        declare_scale(self, read_only=False)
+        self.max_tension = declare(
+            self, 'max_tension', Scale().u_to_tension(dynamics.TENSION_LIMIT),
+            f'output clamp [N] (default: u = {dynamics.TENSION_LIMIT:g} at the default units)',
+            1e-9, 1e9, read_only=False)
         self.safe_tension = declare(
-            self, 'safe_tension', self.scale.u_to_tension(dynamics.EQUILIBRIUM_TENSION),
-            'published when no state arrives for state_timeout [N] (default: u = 3, which '
-            'holds the deployed equilibrium)', 0.0, max_tension)
+            self, 'safe_tension', Scale().u_to_tension(dynamics.EQUILIBRIUM_TENSION),
+            'published on deactivate and when no state arrives for state_timeout [N] (default: '
+            'u = 3 at the default units, which holds the deployed equilibrium)', 0.0, 1e9,
+            read_only=False)
         self.state_timeout = declare(self, 'state_timeout', 5.0, 'wall seconds without a state '
-                                     'before safe_tension is published', 0.01, 3600.0)
+                                     'before safe_tension is published', 0.01, 3600.0,
+                                     read_only=False)
         self.wait_for_subscribers = declare(
-            self, 'wait_for_subscribers', 0, 'send no command until the tension topic has this '
-            'many subscribers (simulator, recorder)', 0, 1000)
+            self, 'wait_for_subscribers', 0, 'answer no state until this many readers of the '
+            'tension commands have matched (simulator, recorder)', 0, 1000, read_only=False)
+        self.wait_for_status_subscribers = declare(
+            self, 'wait_for_status_subscribers', 0, 'answer no state until this many readers of '
+            'the controller status (and excitation) have matched (a recorder)', 0, 1000,
+            read_only=False)
         self.counts = {'commands': 0, 'non_finite_states': 0, 'state_timeouts': 0,
-                       'resent': 0}
-        #: ((step, SI state bytes), command) of the last state answered: a repeat is resent.
-        self.last_answer = None
+                       'resent': 0, 'runs': 0}
+        self.reported = {'fallbacks': 0, 'non_finite': 0, 'non_finite_states': 0}
+        self.failure = ''            # why the last configure failed
+        self.starting = False
+        self.lifecycle_state = UNCONFIGURED
+        self.law = self.step = self.limiter = None
+        self.scale, self.law_name, self.model_info = Scale(), '', {}
+        self.active = False
+        self.non_finite_outputs = 0
+        self.last_answer = None      # ((step, SI state bytes), command) of the last state answered
         self.last_state_wall = time.monotonic()
-        self.compute_seconds = deque(maxlen=100_000)
-        self.pub = self.create_publisher(TensionCommand, TENSION_TOPIC, LOOP_PUBLISHER_QOS)
+        self.last_state = None       # dimensionless state of the last state seen
+        self.compute_seconds = deque(maxlen=COMPUTE_WINDOW)
+        self.readers = MatchedReaders()
+        self.pub = self.create_publisher(TensionCommand, TENSION_TOPIC, LOOP_PUBLISHER_QOS,
+                                         event_callbacks=self.readers.callbacks)
+        self.status_readers = MatchedReaders()
         self.status_pub = self.create_publisher(ControllerStatus, CONTROLLER_STATUS_TOPIC,
-                                                LOOP_PUBLISHER_QOS)
+                                                LOOP_PUBLISHER_QOS,
+                                                event_callbacks=self.status_readers.callbacks)
+        self.excitation_readers = MatchedReaders()
+        self.run_info_pub = self.create_publisher(RunInfo, RUN_INFO_TOPIC, LATCHED_QOS)
+        self.excitation_pub = None
+        self.create_subscription(TsrState, STATE_TOPIC, self.on_state, LOOP_QOS)
+        self.timeout_timer = steady_timer(self, self.state_timeout, self.check_state_timeout)
+        self.health = Health(self, 'controller', self.diagnose)
+        self.parameters = Parameters(self, refuse=self.refuse_parameter)
+        self.parameters.live('max_tension', self.set_max_tension, self.check_max_tension)
+        self.parameters.live('safe_tension', self.set_safe_tension, self.check_safe_tension)
+        self.parameters.live('state_timeout', self.set_state_timeout)
+        self.parameters.live('wait_for_subscribers',
+                             lambda v: setattr(self, 'wait_for_subscribers', v))
+        self.parameters.live('wait_for_status_subscribers',
+                             lambda v: setattr(self, 'wait_for_status_subscribers', v))
+
+    # Lifecycle -----------------------------------------------------------------------------
+
+    def start(self):
+        """With `autostart`: configure and activate; the reason (one line) if that fails."""
+        if not self.autostart:
+            self.get_logger().info('unconfigured: waiting for a lifecycle manager (autostart '
+                                   'is false)')
+            return None
+        self.starting = True      # a failure is then the one 'cannot start' line
+        try:
+            if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+                return self.failure or 'configure failed'
+            if self.trigger_activate() != TransitionCallbackReturn.SUCCESS:
+                return 'activate failed'
+        finally:
+            self.starting = False
+        return None
+
+    def on_configure(self, state):
+        try:
+            self.build()
+        except (ValueError, OSError) as error:
+            self.failure = str(error).splitlines()[0]
+            if not self.starting:
+                self.get_logger().error(f'configure failed: {self.failure}')
+            self.law = self.step = None
+            return TransitionCallbackReturn.FAILURE
+        self.failure = ''
+        self.lifecycle_state = INACTIVE
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state):
+        self.step.reset()
+        self.last_answer, self.last_state = None, None
+        self.last_state_wall = time.monotonic()
+        self.active, self.lifecycle_state = True, ACTIVE
+        self.get_logger().info(f'active: {self.law_name} commanding')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state):
+        self.active, self.lifecycle_state = False, INACTIVE
+        self.publish_safe_tension(ControllerStatus.SAFE_TENSION)
+        self.get_logger().info(f'inactive: stopped commanding (safe tension '
+                               f'{self.safe_tension:.4g} N sent once)')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state):
+        self.law = self.step = None
+        if self.excitation_pub is not None:
+            self.destroy_publisher(self.excitation_pub)
+            self.excitation_pub = None
+        self.lifecycle_state = UNCONFIGURED
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state):
+        self.active, self.law, self.step = False, None, None
+        self.lifecycle_state = 4
+        return TransitionCallbackReturn.SUCCESS
+
+    def build(self):
+        """The law, its observer, the excitation and the clamp from the parameters."""
+        self.law_name = self.get_parameter('law').value
+        settings_class = law_class(self.law_name).Settings
+        settings = settings_class(**settings_values(self, self.law_name, settings_class))
+        sections = settings_sections()
+        observer = sections['observer'](**settings_values(self, 'observer',
+                                                          sections['observer']))
+        excitation = ExcitationSource(sections['excitation'](
+            **settings_values(self, 'excitation', sections['excitation'])))
+        self.scale = Scale(**{name: self.get_parameter(name).value
+                              for name in SCALE_PARAMETERS})
+        self.limiter = TensionLimiter(self.scale.tension_to_u(self.max_tension))
+        self.law = make_controller(self.law_name, settings, observer,
+                                   u_max=self.scale.tension_to_u(self.max_tension))
+        self.step = ControlStep(self.law, self.limiter, excitation)
+        model = self.law.model
+        self.model_info = ({} if model is None or not model.path else
+                           {'path': model.path, 'weights_sha256': weights_sha256(model.path)})
         # Only an excited controller offers tsr/excitation: a publisher that never sends would
         # look like a broken transport to the recorder's silence check.
-        self.excitation_pub = (self.create_publisher(Excitation, EXCITATION_TOPIC,
-                                                     LOOP_PUBLISHER_QOS)
-                               if self.excitation.active else None)
-        self.create_publisher(RunInfo, RUN_INFO_TOPIC, LATCHED_QOS).publish(run_info_msg(
-            self.get_fully_qualified_name(), 'controller', self.configuration(settings),
+        if excitation.active and self.excitation_pub is None:
+            self.excitation_readers = MatchedReaders()
+            self.excitation_pub = self.create_publisher(
+                Excitation, EXCITATION_TOPIC, LOOP_PUBLISHER_QOS,
+                event_callbacks=self.excitation_readers.callbacks)
+        self.run_info_pub.publish(run_info_msg(
+            self.get_fully_qualified_name(), 'controller',
+            self.configuration(settings, observer, excitation.settings),
             self.get_clock().now().to_msg()))
-        self.create_subscription(TsrState, STATE_TOPIC, self.on_state, LOOP_QOS)
-        self.create_timer(self.state_timeout, self.check_state_timeout)
-        model = getattr(self.controller, 'model', None)
         self.get_logger().info(f'{self.law_name} controller ({settings}), clamp [0, '
-                               f'{max_tension:.4g}] N'
+                               f'{self.max_tension:.4g}] N'
                                + (f', model {model.path}' if model is not None else ''))
 
+    def configuration(self, settings, observer, excitation):
+        """What the bag records about this controller (RunInfo): law, settings, model and its
+        weights' hash, units scale, clamp, observer, excitation."""
+        def plain(values):
+            return {k: list(v) if isinstance(v, tuple) else v
+                    for k, v in dataclasses.asdict(values).items()}
+        config = {'controller': self.law_name, 'settings': plain(settings),
+                  'scale': scale_dict(self.scale), 'max_tension': self.max_tension,
+                  'observer': plain(observer), 'excitation': plain(excitation)}
+        if self.model_info:
+            config['model'] = dict(self.model_info)
+        return config
+
+    # Parameters ----------------------------------------------------------------------------
+
+    def refuse_parameter(self, name):
+        configured_by = name == 'law' or name in SCALE_PARAMETERS or name.split('.')[0] in (
+            settings_sections())
+        if not configured_by or self.lifecycle_state == UNCONFIGURED:
+            return None
+        return (f'read at configure: the node is {STATE_LABELS[self.lifecycle_state]}; '
+                'deactivate and clean it up, set it, then configure again')
+
+    def check_max_tension(self, value):
+        if value < self.safe_tension:
+            return f'must be >= safe_tension ({self.safe_tension:.4g} N)'
+        return None
+
+    def check_safe_tension(self, value):
+        if value > self.max_tension:
+            return f'must be <= max_tension ({self.max_tension:.4g} N)'
+        return None
+
+    def set_max_tension(self, value):
+        self.max_tension = value
+        if self.limiter is not None:
+            self.limiter.u_max = self.scale.tension_to_u(value)
+
+    def set_safe_tension(self, value):
+        self.safe_tension = value
+
+    def set_state_timeout(self, value):
+        self.state_timeout = value
+        self.destroy_timer(self.timeout_timer)
+        self.timeout_timer = steady_timer(self, value, self.check_state_timeout)
+
+    # The loop ------------------------------------------------------------------------------
+
+    def readers_missing(self):
+        """What the node still waits for before it answers a state ('' when nothing): the
+        readers of its topics, matched at the DDS level (what delivery depends on)."""
+        wanted = [(TENSION_TOPIC, self.readers, self.wait_for_subscribers),
+                  (CONTROLLER_STATUS_TOPIC, self.status_readers,
+                   self.wait_for_status_subscribers)]
+        if self.excitation_pub is not None:
+            wanted.append((EXCITATION_TOPIC, self.excitation_readers,
+                           self.wait_for_status_subscribers))
+        return ', '.join(f'{want} readers of {topic} ({readers.count} matched)'
+                         for topic, readers, want in wanted if readers.count < want)
+
     def on_state(self, msg):
-        if self.pub.get_subscription_count() < self.wait_for_subscribers:
-            self.get_logger().info(f'waiting for {self.wait_for_subscribers} subscribers to '
-                                   f'{TENSION_TOPIC}', throttle_duration_sec=5.0)
+        if not self.active:
+            return
+        missing = self.readers_missing()
+        if missing:
+            self.get_logger().info(f'waiting for {missing}', throttle_duration_sec=5.0)
             return
         self.last_state_wall = time.monotonic()
         si = state_from_msg(msg, dynamics.PLANAR_DIM)
         key = (msg.step, si.tobytes())
-        if self.last_answer is not None and self.last_answer[0] == key:
-            self.counts['resent'] += 1
-            self.pub.publish(self.last_answer[1])
-            self.get_logger().info(f'state of step {msg.step} repeated: its command resent',
-                                   throttle_duration_sec=5.0)
-            return
+        if self.last_answer is not None:
+            (last_step, _), command = self.last_answer
+            if self.last_answer[0] == key:
+                self.counts['resent'] += 1
+                self.pub.publish(command)
+                self.get_logger().info(f'state of step {msg.step} repeated: its command resent',
+                                       throttle_duration_sec=5.0)
+                return
+            if msg.step <= last_step:
+                self.new_run(last_step, msg.step)
         if not np.all(np.isfinite(si)):
             self.counts['non_finite_states'] += 1
+            self.last_state = None
             self.get_logger().warning(f'non-finite state at step {msg.step}: no command',
                                       throttle_duration_sec=1.0)
-            self.publish_status(msg.step, ControllerStatus.NON_FINITE_STATE)
+            self.publish_status(msg.step, msg.header.stamp, ControllerStatus.NON_FINITE_STATE)
             return
-        fallbacks = self.controller.fallbacks
-        start = time.perf_counter()
-        u = self.controller.compute(self.scale.state_from_si(si))
-        elapsed = time.perf_counter() - start
-        self.compute_seconds.append(elapsed)
-        if not math.isfinite(u):
-            self.get_logger().error(f'controller gave u = {u} at step {msg.step}: no command',
-                                    throttle_duration_sec=1.0)
-            self.publish_status(msg.step, ControllerStatus.NON_FINITE_OUTPUT, elapsed)
+        self.last_state = self.scale.state_from_si(si)
+        result = self.step(self.last_state)
+        self.compute_seconds.append(result.compute_seconds)
+        if result.outcome is Outcome.NON_FINITE_OUTPUT:
+            self.non_finite_outputs += 1
+            self.get_logger().error(f'{self.law_name} gave a non-finite tension at step '
+                                    f'{msg.step}: no command', throttle_duration_sec=1.0)
+            self.publish_status(msg.step, msg.header.stamp, int(result.outcome),
+                                result.compute_seconds)
             return
-        clamped = self.limiter.clamped
-        stamp = self.get_clock().now().to_msg()
-        if self.excitation.active:
-            added = self.excitation.next()
-            u += added
-            excitation = Excitation(step=msg.step, tension=self.scale.u_to_tension(added))
+        stamp = msg.header.stamp      # the answer carries the time of the state it answers
+        if self.excitation_pub is not None:
+            excitation = Excitation(step=msg.step,
+                                    tension=self.scale.u_to_tension(result.excitation))
             excitation.header.stamp = stamp
             self.excitation_pub.publish(excitation)
-        u = self.limiter(u)
-        if hasattr(self.controller, 'applied'):   # the observer must know what was sent
-            self.controller.applied(u)
-        tension = self.scale.u_to_tension(u)
+        tension = self.scale.u_to_tension(result.tension)
         command = tension_msg(tension, msg.step, stamp)
         self.pub.publish(command)
         self.last_answer = (key, command)
         self.counts['commands'] += 1
-        status = (ControllerStatus.SOLVER_FALLBACK if self.controller.fallbacks > fallbacks
-                  else ControllerStatus.CLAMPED if self.limiter.clamped > clamped
-                  else ControllerStatus.OK)
-        self.publish_status(msg.step, status, elapsed, tension)
+        self.publish_status(msg.step, stamp, int(result.outcome), result.compute_seconds,
+                            tension)
 
-    def configuration(self, settings):
-        """What the bag records about this controller (RunInfo): law, settings, model and its
-        weights' hash, units scale, clamp, excitation."""
-        model = getattr(self.controller, 'model', None)
-        config = {'controller': self.law_name,
-                  'settings': {k: list(v) if isinstance(v, tuple) else v
-                               for k, v in dataclasses.asdict(settings).items()},
-                  'scale': scale_dict(self.scale),
-                  'max_tension': self.scale.u_to_tension(self.limiter.u_max),
-                  'observer': dict(dataclasses.asdict(self.observer_settings)),
-                  'excitation': dict(dataclasses.asdict(self.excitation.settings))}
-        if model is not None and model.path:
-            with open(os.path.join(model.path, WEIGHTS_FILE), 'rb') as weights:
-                digest = hashlib.sha256(weights.read()).hexdigest()
-            config['model'] = {'path': os.path.abspath(model.path), 'weights_sha256': digest}
-        return config
+    def new_run(self, last_step, step):
+        """The simulator started a new run (reset): the law and its observer start afresh."""
+        self.counts['runs'] += 1
+        self.step.reset()
+        self.get_logger().info(f'new run (state step {step} after {last_step}): law, observer '
+                               'and excitation reset')
 
-    def publish_status(self, step, status, compute_time=math.nan, tension=math.nan):
-        msg = ControllerStatus(step=int(step), status=int(status), controller=self.law_name,
+    def publish_status(self, step, stamp, status, compute_time=math.nan, tension=math.nan):
+        msg = ControllerStatus(step=int(step), status=int(status),
+                               controller=self.law_name,
                                compute_time=float(compute_time), tension=float(tension),
                                commands=int(self.counts['commands']),
-                               clamped=int(self.limiter.clamped),
-                               solver_fallbacks=int(self.controller.fallbacks),
+                               clamped=int(self.limiter.clamped if self.limiter else 0),
+                               solver_fallbacks=int(self.law.fallbacks if self.law else 0),
                                non_finite_states=int(self.counts['non_finite_states']),
                                state_timeouts=int(self.counts['state_timeouts']))
-        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.stamp = stamp
         self.status_pub.publish(msg)
 
+    def publish_safe_tension(self, status):
+        """`safe_tension`, answering no state (step NO_STEP), and its status."""
+        stamp = self.get_clock().now().to_msg()
+        self.pub.publish(tension_msg(self.safe_tension, NO_STEP, stamp))
+        self.publish_status(NO_STEP, stamp, status, tension=self.safe_tension)
+
     def check_state_timeout(self):
-        if time.monotonic() - self.last_state_wall < self.state_timeout:
+        if not self.active or time.monotonic() - self.last_state_wall < self.state_timeout:
             return
         self.counts['state_timeouts'] += 1
         self.get_logger().warning(f'no state for {self.state_timeout:g} s: publishing the safe '
                                   f'tension {self.safe_tension:.4g} N', throttle_duration_sec=5.0)
-        self.pub.publish(tension_msg(self.safe_tension, NO_STEP,
-                                     self.get_clock().now().to_msg()))
-        self.publish_status(NO_STEP, ControllerStatus.SAFE_TENSION,
-                            tension=self.safe_tension)
+        self.publish_safe_tension(ControllerStatus.SAFE_TENSION)
+
+    # Health --------------------------------------------------------------------------------
+
+    def diagnose(self):
+        """Health (README, *Diagnostics*): ERROR when configure failed, the law gave a
+        non-finite tension, or the last state was non-finite or outside the domain (l <= 0,
+        |theta| past the tumbling swing); WARN when not active, when the law's solver fell back
+        or no state came for state_timeout since the last report; OK otherwise."""
+        fallbacks = self.law.fallbacks if self.law else 0
+        values = {'lifecycle_state': STATE_LABELS[self.lifecycle_state],
+                  'law': self.law_name or self.get_parameter('law').value}
+        values.update({f'model_{k}': v for k, v in self.model_info.items()})
+        if self.compute_seconds:
+            times = np.array(self.compute_seconds) * 1e3
+            values.update(compute_median_ms=float(np.median(times)),
+                          compute_p99_ms=float(np.percentile(times, 99)))
+        values.update(self.counts, fallbacks=fallbacks, non_finite_outputs=self.non_finite_outputs,
+                      clamped=self.limiter.clamped if self.limiter else 0,
+                      last_step=self.last_answer[1].step if self.last_answer else '',
+                      last_tension=self.last_answer[1].tension if self.last_answer else '')
+        if self.law is not None:
+            values.update(self.law.diagnostics())
+        new = {'fallbacks': fallbacks, 'non_finite': self.non_finite_outputs,
+               'non_finite_states': self.counts['non_finite_states']}
+        grown = {k for k, v in new.items() if v > self.reported[k]}
+        self.reported = new
+        if self.failure:
+            return Health.ERROR, f'configure failed: {self.failure}', values
+        if 'non_finite' in grown:
+            return Health.ERROR, 'the law gave a non-finite tension', values
+        if 'non_finite_states' in grown:
+            return Health.ERROR, 'a non-finite state: no command', values
+        x = self.last_state
+        if x is not None and not (dynamics.in_domain(x)
+                                  and abs(x[dynamics.THETA]) <= dynamics.TUMBLING_SWING):
+            return Health.ERROR, 'the state left the domain or is tumbling', values
+        if not self.active:
+            return Health.WARN, f'{STATE_LABELS[self.lifecycle_state]}: not commanding', values
+        if 'fallbacks' in grown:
+            return Health.WARN, "the law's solver fell back", values
+        if time.monotonic() - self.last_state_wall >= self.state_timeout:
+            return Health.WARN, f'no state for {self.state_timeout:g} s: safe tension', values
+        return Health.OK, 'commanding', values
 
     def report(self):
         """A closing line for people reading the log (tools read the bag, not this)."""
         if self.compute_seconds:
             times = np.array(self.compute_seconds) * 1e6
             print(f'[tsr_controller] {self.counts["commands"]} commands, compute median '
-                  f'{np.median(times):.1f} us, p99 {np.percentile(times, 99):.1f} us, '
-                  f'clamped {self.limiter.clamped}, solver fallbacks '
-                  f'{self.controller.fallbacks}, non-finite states '
-                  f'{self.counts["non_finite_states"]}, state timeouts '
+                  f'{np.median(times):.1f} us, p99 {np.percentile(times, 99):.1f} us (last '
+                  f'{len(times)}), clamped {self.limiter.clamped if self.limiter else 0}, '
+                  f'solver fallbacks {self.law.fallbacks if self.law else 0}, non-finite '
+                  f'states {self.counts["non_finite_states"]}, state timeouts '
                   f'{self.counts["state_timeouts"]}, repeated states resent '
                   f'{self.counts["resent"]}', flush=True)
 
 
 def main(args=None):
-    return run_node(ControllerNode, on_exit=ControllerNode.report, args=args)
+    return run_node(ControllerNode, on_exit=ControllerNode.report, args=args,
+                    start=ControllerNode.start)
 
 
 if __name__ == '__main__':

@@ -17,8 +17,10 @@ import time
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from tsr_sim.ros_io import declare, run_node, spin_until_quiet
-from tsr_sim.wire import LATCHED_TOPICS, LOOP_TOPIC_TYPES
+from tsr_sim.ros_io import (declare, Health, Parameters, run_node, spin_until_quiet,
+                            steady_timer)
+from rosgraph_msgs.msg import Clock
+from tsr_sim.wire import CLOCK_TOPIC, LATCHED_TOPICS, LOOP_TOPIC_TYPES
 
 from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.bag.writer import BagWriter
@@ -50,8 +52,10 @@ def offered_qos(endpoint):
 
 class RecorderNode(Node):
 
+    NODE_NAME = 'tsr_recorder'
+
     def __init__(self):
-        super().__init__('tsr_recorder')
+        super().__init__(self.NODE_NAME)
         self.wanted = [self.resolve_topic_name(t) for t in declare(
             self, 'topics', DEFAULT_TOPICS, 'topics to record (relative names resolve in the '
             "node's namespace)")]
@@ -67,37 +71,74 @@ class RecorderNode(Node):
         self.writer = BagWriter(
             os.path.join(directory, name),
             max_file_bytes=declare(self, 'max_file_size', 0,
-                                   'split after this many bytes (0: never)', 0, 2 ** 62),
+                                   'split after this many bytes (0: never)', 0, 2 ** 62,
+                                   read_only=False),
             max_file_seconds=declare(self, 'max_file_duration', 0.0,
-                                     'split after this many seconds (0: never)', 0.0, 1e9),
+                                     'split after this many seconds (0: never)', 0.0, 1e9,
+                                     read_only=False),
             chunk_size=declare(self, 'chunk_size', 1 << 20,
                                'MCAP chunk size in bytes (a chunk is also closed every '
                                'flush_period)', 256, 1 << 30),
             flush_period=declare(self, 'flush_period', 1.0,
                                  'seconds: a chunk in progress is written out at least this '
                                  'often, so a kill -9 loses at most about this much (0: only '
-                                 'by chunk size)', 0.0, 3600.0))
-        if self.writer.flush_period > 0.0:
-            self.create_timer(min(0.2, self.writer.flush_period / 2.0), self.writer.flush_if_due)
+                                 'by chunk size)', 0.0, 3600.0, read_only=False))
+        # Checked often and cheaply: a chunk is written once its oldest message is due.
+        steady_timer(self, 0.1, self.writer.flush_if_due)
         self.subscribed = {}
         self.matched_since = {}        # topic -> monotonic time its publishers were first seen
         self.silence_warned = set()
         self.silence_warning = declare(
             self, 'silence_warning', 5.0, 'seconds: warn once per topic when publishers are '
-            'matched but no message has arrived for this long (0: never)', 0.0, 3600.0)
-        if self.silence_warning > 0.0:
-            self.create_timer(min(1.0, self.silence_warning / 2.0), self.check_silence)
-        self.create_timer(declare(self, 'discovery_period', 0.2,
-                                  'seconds between looks for new topics', 0.01, 60.0),
-                          self.discover)
+            'matched but no message has arrived for this long (0: never)', 0.0, 3600.0,
+            read_only=False)
+        steady_timer(self, 0.5, self.check_silence)
+        self.discovery_timer = steady_timer(self, declare(
+            self, 'discovery_period', 0.2, 'seconds between looks for new topics', 0.01, 60.0,
+            read_only=False), self.discover)
+        self.types = types
+        self.recording = False
+        self.parameters = Parameters(self)
+        self.parameters.live('flush_period',
+                             lambda v: setattr(self.writer, 'flush_period', float(v)))
+        self.parameters.live('max_file_size', lambda v: setattr(self.writer, 'max_file_bytes', v))
+        self.parameters.live('max_file_duration',
+                             lambda v: setattr(self.writer, 'max_file_ns', int(v * 1e9)))
+        self.parameters.live('silence_warning', lambda v: setattr(self, 'silence_warning', v))
+        self.parameters.live('discovery_period', self.set_discovery_period)
+        self.health = Health(self, 'recorder', self.diagnose)
         self.get_logger().info(f'recording {self.wanted} into {self.writer.directory}')
+        self.clock_seen = not self.get_parameter('use_sim_time').value
+        if not self.clock_seen:
+            self.get_logger().info('use_sim_time: waiting for /clock before recording')
+            self.clock_watch = self.create_subscription(Clock, CLOCK_TOPIC, self.on_clock, 1)
+        self.start_recording()
+
+    def on_clock(self, msg):
+        if not self.clock_seen:
+            self.clock_seen = True
+            self.start_recording()
+
+    def set_discovery_period(self, value):
+        self.destroy_timer(self.discovery_timer)
+        self.discovery_timer = steady_timer(self, value, self.discover)
+
+    def start_recording(self):
+        """Subscribe to the topics whose types are given (so nothing is missed), once the
+        clock runs: at once on wall time, at the first /clock on sim time."""
+        if self.recording or not self.clock_seen:
+            return
+        self.recording = True
         latched = {self.resolve_topic_name(t) for t in LATCHED_TOPICS}
-        for topic, type_name in zip(self.wanted, types):
+        for topic, type_name in zip(self.wanted, self.types):
             if type_name:
                 self.subscribe(topic, type_name, publishers=[], latched=topic in latched)
         self.discover()
 
     def discover(self):
+        if not self.recording:
+            self.start_recording()
+            return
         for topic in list(self.writer.qos_pending):
             self.learn_qos(topic)
         if len(self.subscribed) == len(self.wanted):
@@ -143,10 +184,33 @@ class RecorderNode(Node):
             lambda data, t=topic: self.record(t, data), profile, raw=True)
         self.get_logger().info(f'recording {topic} [{type_name}]')
 
+    def silent_topics(self):
+        """Topics with matched publishers that have sent nothing for `silence_warning` s."""
+        return sorted(t for t in self.silence_warned if not self.writer.topic_counts.get(t))
+
+    def diagnose(self):
+        """Health (README, *Diagnostics*): WARN when a matched topic stays silent or, on sim
+        time, no /clock has come yet; OK otherwise. Per topic its message count."""
+        writer = self.writer
+        since_flush = (time.monotonic() - writer.last_flush_wall
+                       if writer.last_flush_wall is not None else '')
+        values = {'bag': writer.directory, 'messages': writer.message_count,
+                  'bytes': writer.bytes_written, 'files': len(writer.files),
+                  'seconds_since_flush': since_flush,
+                  'silent_topics': ', '.join(self.silent_topics())}
+        values.update({f'count {topic}': count for topic, count in writer.topic_counts.items()})
+        if not self.recording:
+            return Health.WARN, 'use_sim_time: waiting for /clock', values
+        if self.silent_topics():
+            return Health.WARN, f'silent: {", ".join(self.silent_topics())}', values
+        return Health.OK, f'recording into {writer.directory}', values
+
     def check_silence(self):
         """A matched topic that stays silent is logged once: its publisher sends nothing, or
         the transport delivers nothing (Fast DDS shared memory to a recorder started right
         after one was killed -9 on this host: README, Reliability)."""
+        if self.silence_warning <= 0.0:
+            return
         now = time.monotonic()
         for topic, subscription in self.subscribed.items():
             if topic in self.silence_warned or self.writer.topic_counts.get(topic):

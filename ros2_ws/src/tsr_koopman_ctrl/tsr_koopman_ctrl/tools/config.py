@@ -9,16 +9,17 @@ import argparse
 import sys
 
 from tsr_koopman_ctrl.control import CONTROLLERS
+from tsr_koopman_ctrl.control.registry import DEFAULT_LAW
 from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings
 from tsr_koopman_ctrl.control.settings import fields
 
 HEADER = """\
 # Example parameters for tsr_koopman_ctrl/controller_node (the defaults), written by
-# `python -m tsr_koopman_ctrl.tools.config` from the laws' settings classes: do not edit by hand.
+# `ros2 run tsr_koopman_ctrl config` from the laws' settings classes: do not edit by hand.
 #   ros2 run tsr_koopman_ctrl controller_node --ros-args --params-file controller.yaml
-# The node declares the settings of the law named by `controller`, the observer's (offset-free
-# control) and the excitation's.
+# Keyed /**/tsr_controller: it applies to the node under any namespace. The node declares every
+# law's settings, the observer's (offset-free control) and the excitation's; `law` picks the law.
 """
 
 
@@ -30,9 +31,10 @@ def scalar(value):
     return repr(float(value)) if isinstance(value, float) else str(value)
 
 
-def example_yaml(node_name='tsr_controller', default_law='koopman_mpc'):
+def example_yaml(node_name='/**/tsr_controller', default_law=DEFAULT_LAW):
     lines = [HEADER.rstrip('\n'), f'{node_name}:', '  ros__parameters:',
-             f'    controller: {default_law}   # one of {", ".join(sorted(CONTROLLERS))}',
+             f'    law: {default_law}   # one of {", ".join(sorted(CONTROLLERS))}',
+             '    autostart: true           # configure and activate at start',
              '    state_timeout: 5.0        # s without a state -> safe_tension']
     sections = {law: CONTROLLERS[law].Settings for law in sorted(CONTROLLERS)}
     sections['observer'] = ObserverSettings       # offset-free control of any law; on by default

@@ -5,7 +5,7 @@ domain, waits for the simulator to finish, closes the recorder cleanly, then rea
 from the bag: every figure of the table (settle time, swing, tensions, the controller's compute
 times, a halt) comes from the record, not from the processes' memory or logs.
 
-    python -m tsr_koopman_ctrl.tools.deploy [--controller koopman_mpc] [--model DIR|NAME]
+    python -m tsr_koopman_ctrl.tools.deploy [--law koopman_mpc] [--model DIR|NAME]
         [--set LAW.SETTING=VALUE ...] [--steps 2000] [--x0 ...] [--namespace NS] [--compare]
 
 The default is koopman_mpc on the shipped model (koopman_default), which deploys into the 1% zone
@@ -24,7 +24,7 @@ from tsr_sim.plant import plant_parameters
 
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.control import CONTROLLERS
-from tsr_koopman_ctrl.control.registry import law_class, NODE_SECTIONS, preset
+from tsr_koopman_ctrl.control.registry import DEFAULT_LAW, law_class, NODE_SECTIONS, preset
 from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
@@ -36,7 +36,8 @@ from tsr_koopman_ctrl.tools.report import write_report
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog='deploy', description=__doc__.split('\n\n')[0])
-    parser.add_argument('--controller', default='koopman_mpc', choices=sorted(CONTROLLERS))
+    parser.add_argument('--law', default=DEFAULT_LAW, choices=sorted(CONTROLLERS),
+                        help=f'the control law (default {DEFAULT_LAW})')
     parser.add_argument('--model', help='model directory or shipped model name for the '
                         'koopman_* laws (default: their `model` setting, koopman_default)')
     parser.add_argument('--preset', help="a settings preset for the laws ('untuned': "
@@ -61,7 +62,7 @@ def parse_args(argv):
                         help='dimensionless initial state (paper: 0 0 -0.99 0.5)')
     parser.add_argument('--compare', action='store_true',
                         help='every controller from every comparison start, one table and a '
-                        'plot per start (ignores --controller and --x0)')
+                        'plot per start (ignores --law and --x0)')
     parser.add_argument('--out', default='out', type=cli.output_dir,
                         help='directory for plots, summary and logs')
     parser.add_argument('--bags', default='bags', type=cli.output_dir,
@@ -110,10 +111,10 @@ def parse_args(argv):
 def check_models(args):
     """Load the model of every law that will run and has one: a bad one is a usage error
     here, not a controller that fails to start after the other nodes have."""
-    laws = sorted(CONTROLLERS) if args.compare else [args.controller]
+    laws = sorted(CONTROLLERS) if args.compare else [args.law]
     with_model = [law for law in laws if 'model' in law_class(law).Settings.__dataclass_fields__]
     if args.model is not None and not with_model:
-        raise ValueError(f'--model: {args.controller} uses no model')
+        raise ValueError(f'--model: {args.law} uses no model')
     for law in with_model:
         default = law_class(law).Settings().model
         LiftedModel.load(args.law_settings.get(law, {}).get('model', default))
@@ -173,17 +174,23 @@ def run(args, controller, x0, run_dir, name):
         return NodeProcess(package, exe, node, params, domain_id=domain, log_path=log,
                            namespace=args.namespace)
 
+    # One time base: every node on the simulator's clock, so the bag's log times and every
+    # header stamp are sim time. Nothing is lost at the start: the simulator publishes its
+    # first state once the controller and the recorder read it (DDS-matched), the controller
+    # commands once the simulator and the recorder read its commands and statuses, and the
+    # recorder subscribes at the first /clock, before any state.
     recorder = start('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
-                     {'output_dir': args.bags, 'bag_name': name})
+                     {'output_dir': args.bags, 'bag_name': name, 'use_sim_time': True})
     law = {section: args.law_settings[section] for section in (controller, *NODE_SECTIONS)
            if args.law_settings.get(section)}
     control = start('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
-                    {'controller': controller, 'wait_for_subscribers': 2, **law})
+                    {'law': controller, 'wait_for_subscribers': 2,
+                     'wait_for_status_subscribers': 1, 'use_sim_time': True, **law})
     sim = start('tsr_sim', 'sim_node', 'tsr_sim',
                 {**args.plant_parameters, 'mode': 'lockstep',
                  'initial_state': [float(v) for v in x0],
                  'max_steps': args.steps, 'exit_on_finish': True, 'wait_for_subscribers': 2,
-                 'progress_every': 100}, console=True)
+                 'progress_every': 100, 'use_sim_time': True}, console=True)
     interrupted = False
     try:
         watch(sim, (control, recorder), args.timeout)
@@ -235,15 +242,15 @@ def summarise(bag_path, controller, x0, planned_steps, namespace=None):
 def deploy_one(args):
     """The deployment, summarised; an interrupted one is summarised as far as it ran, then
     Interrupted is raised again."""
-    name = f'deploy_{args.controller}_{stamp()}'
+    name = f'deploy_{args.law}_{stamp()}'
     run_dir = os.path.join(args.out, name)
     try:
-        bag_path, stopped = run(args, args.controller, args.x0, run_dir, name), None
+        bag_path, stopped = run(args, args.law, args.x0, run_dir, name), None
     except Interrupted as interruption:
         bag_path, stopped = interruption.bag_path, interruption
-    row, loop = summarise(bag_path, args.controller, args.x0, args.steps, args.namespace)
-    plot_deployments({args.controller: loop}, os.path.join(run_dir, 'deployment.png'),
-                     title=f'TSR deployment over DDS: {args.controller}')
+    row, loop = summarise(bag_path, args.law, args.x0, args.steps, args.namespace)
+    plot_deployments({args.law: loop}, os.path.join(run_dir, 'deployment.png'),
+                     title=f'TSR deployment over DDS: {args.law}')
     write_report(run_dir, [row])
     if stopped is not None:
         raise stopped

@@ -43,7 +43,7 @@ def deployments(args, label, model, starts, plant, excite, seed):
         if excite:
             for item in EXCITATION + [f'excitation.seed={seed + index}']:
                 settings += ['--set', item]
-        options = deploy.parse_args(['--controller', args.law, '--plant', plant,
+        options = deploy.parse_args(['--law', args.law, '--plant', plant,
                                      '--steps', str(args.steps), '--out',
                                      os.path.join(args.workdir, 'runs'), '--bags', bags,
                                      *settings])

@@ -32,7 +32,6 @@ DDP; only rank 0 prints, evaluates the held-out bags and writes the model.
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import os
 import pathlib
@@ -165,9 +164,8 @@ def configure(args):
         if kept.get('kind') == 'block' and not args.from_scratch:
             from tsr_koopman_ctrl.learning.block_koopman import BlockStructure
             structure = BlockStructure(**{k: v for k, v in kept.items() if k != 'kind'})
-        with open(os.path.join(path, model_file.WEIGHTS_FILE), 'rb') as weights:
-            digest = hashlib.sha256(weights.read()).hexdigest()
-        init = {'given': args.init, 'path': os.path.abspath(path), 'weights_sha256': digest,
+        init = {'given': args.init, 'path': os.path.abspath(path),
+                'weights_sha256': model_file.weights_sha256(path),
                 'fine_tuned': not args.from_scratch}
         if os.path.realpath(args.out) == os.path.realpath(path):
             raise UsageError(f'--out {args.out} is the init model: write the new one elsewhere')
