@@ -118,10 +118,12 @@ class RecorderNode(Node):
         if publishers:
             self.writer.set_offered_qos(topic, [offered_qos(p) for p in publishers])
 
-    def record(self, topic, data):
+    def record(self, topic, data, info):
         if topic in self.writer.qos_pending:      # first message before the timer saw them
             self.learn_qos(topic)
-        self.writer.write(topic, data, self.get_clock().now().nanoseconds)
+        clock = self.get_clock()       # rosbag2 logs on the node's clock under use_sim_time only
+        self.writer.write_received(
+            topic, data, info, clock.now().nanoseconds if clock.ros_time_is_active else None)
 
     def subscribe(self, topic, type_name, publishers, latched=False):
         """Subscribe raw; with no publisher known yet: reliable, and volatile (matches any)
@@ -140,7 +142,7 @@ class RecorderNode(Node):
             profile.reliability = ReliabilityPolicy.BEST_EFFORT
         self.subscribed[topic] = self.create_subscription(
             message_class(type_name), topic,
-            lambda data, t=topic: self.record(t, data), profile, raw=True)
+            lambda data, info, t=topic: self.record(t, data, info), profile, raw=True)
         self.get_logger().info(f'recording {topic} [{type_name}]')
 
     def check_silence(self):
