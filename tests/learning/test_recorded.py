@@ -413,8 +413,8 @@ def test_the_same_type_spelled_otherwise_is_accepted(tmp_path):
     x, u, _ = loop_data(40)
     sep = '=' * 80
     read = definitions._interface_file
-    header, time = (open(read(t, '.msg')).read() for t in ('std_msgs/msg/Header',
-                                                              'builtin_interfaces/msg/Time'))
+    header, time = (open(read(t, '.msg')).read()
+                    for t in ('std_msgs/msg/Header', 'builtin_interfaces/msg/Time'))
     installed = definitions.message_definition('tsr_msgs/msg/TsrState')
     state = open(read('tsr_msgs/msg/TsrState', '.msg')).read()
     old_spelling = (f'{state.rstrip()}\n{sep}\nMSG: std_msgs/msg/Header\n{header.rstrip()}\n'

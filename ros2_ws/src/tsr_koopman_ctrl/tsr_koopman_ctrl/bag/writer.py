@@ -37,6 +37,7 @@ files hold (chunks written by size since then); the files, as read, are the trut
 """
 
 from dataclasses import dataclass
+import inspect
 import os
 import time
 
@@ -97,6 +98,26 @@ class _CountingFile:
 
     def close(self):
         self._file.close()
+
+
+class ReceivedCallback:
+    """A subscription callback that gets rclpy's MessageInfo on every executor: calls
+    `function(msg, info)`; give it to `create_subscription` and feed `BagWriter.write_received`.
+
+    rclpy hands the info to a callback whose signature takes two arguments, so this one says
+    it does (`__signature__`). The Jazzy EventsExecutor (rclpy 7.1.6, events_executor.cpp
+    `HandleSubscriptionReady`: `callback(msg_info)`) then passes the (msg, info) pair as one
+    argument where the other executors pass two; both are taken."""
+
+    __signature__ = inspect.Signature(
+        [inspect.Parameter(name, inspect.Parameter.POSITIONAL_ONLY) for name in ('msg', 'info')])
+
+    def __init__(self, function):
+        self.function = function
+
+    def __call__(self, *args):
+        msg, info = args if len(args) == 2 else args[0]
+        return self.function(msg, info)
 
 
 def open_mcap(path, chunk_size=1 << 20):

@@ -21,7 +21,7 @@ from tsr_sim.ros_io import declare, run_node, spin_until_quiet
 from tsr_sim.wire import LATCHED_TOPICS, LOOP_TOPIC_TYPES
 
 from tsr_koopman_ctrl.bag import definitions
-from tsr_koopman_ctrl.bag.writer import BagWriter
+from tsr_koopman_ctrl.bag.writer import BagWriter, ReceivedCallback
 
 DEFAULT_TOPICS = list(LOOP_TOPIC_TYPES)
 DEFAULT_TYPES = list(LOOP_TOPIC_TYPES.values())
@@ -142,7 +142,8 @@ class RecorderNode(Node):
             profile.reliability = ReliabilityPolicy.BEST_EFFORT
         self.subscribed[topic] = self.create_subscription(
             message_class(type_name), topic,
-            lambda data, info, t=topic: self.record(t, data, info), profile, raw=True)
+            ReceivedCallback(lambda data, info, t=topic: self.record(t, data, info)), profile,
+            raw=True)
         self.get_logger().info(f'recording {topic} [{type_name}]')
 
     def check_silence(self):
