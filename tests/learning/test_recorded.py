@@ -21,7 +21,7 @@ from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.learning import recorded
 
 MSG_DIR = ROOT / 'ros2_ws' / 'src' / 'tsr_msgs' / 'msg'
-TSR_TYPES = ('TsrState', 'TensionCommand', 'RunInfo', 'Excitation')
+TSR_TYPES = ('TsrState', 'TensionCommand', 'RunInfo', 'Excitation', 'SimStatus')
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 for _name in TSR_TYPES:
     TYPESTORE.register(get_types_from_msg((MSG_DIR / f'{_name}.msg').read_text(),
@@ -291,7 +291,8 @@ def write_messages(directory, messages):
     with bag.BagWriter(str(directory)) as writer:
         for name, type_name in (('/tsr/run_info', 'tsr_msgs/msg/RunInfo'),
                                 ('/tsr/state', 'tsr_msgs/msg/TsrState'),
-                                ('/tsr/tension_cmd', 'tsr_msgs/msg/TensionCommand')):
+                                ('/tsr/tension_cmd', 'tsr_msgs/msg/TensionCommand'),
+                                ('/tsr/sim_status', 'tsr_msgs/msg/SimStatus')):
             writer.add_topic(topic(name, type_name))
         for i, (name, data) in enumerate(messages):
             writer.write(name, data, log_time_ns=1000 * (i + 1))
@@ -336,6 +337,24 @@ def test_no_command_of_one_run_is_matched_to_a_state_of_the_other(tmp_path):
     np.testing.assert_allclose(first.u, u, rtol=0, atol=1e-12)
     np.testing.assert_allclose(second.u, u2, rtol=0, atol=1e-12)
     assert first.counts['conflicting_commands'] == 1 and second.counts['commands'] == 35
+
+
+def test_a_halted_run_stays_halted_after_the_reset_s_status(tmp_path):
+    """The reset publishes the new run's status (step 0) before its first state: it is run 1's,
+    and run 0 keeps the halt it ended with."""
+    x, u, _ = loop_data(40)
+    x2, u2, _ = loop_data(30, seed=7)
+
+    def status(code, step):
+        return ('/tsr/sim_status', _cdr('tsr_msgs/msg/SimStatus', header=_header(0.0),
+                                        status=code, message='', step=step,
+                                        commands_accepted=0, rejected_non_finite=0,
+                                        rejected_negative=0, rejected_over_limit=0,
+                                        rejected_stale=0, command_timeouts=0))
+    first, second = bag.read_runs(write_messages(
+        tmp_path / 'b', lockstep(x, u) + [status(1, 40), status(0, 0)] + lockstep(x2, u2)))
+    assert first.halted and first.sim_status.step == 40
+    assert not second.halted and second.sim_status.step == 0
 
 
 def test_a_reset_to_the_same_start_is_one_run_once_the_states_differ(tmp_path):

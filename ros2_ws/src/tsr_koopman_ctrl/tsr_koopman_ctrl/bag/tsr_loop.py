@@ -8,14 +8,18 @@ number alone does not name a state. The states are split into runs in the order 
 recorded (log time, then file order): a run ends where the step goes back to one it never had,
 or where a step it has comes again with other values. A state that comes again with the same
 values is a republication (the lockstep simulator's idle republish, a late joiner's history),
-unless states that follow show it was the identical start of a reset: they then move to the new
-run with it. A reset that replays its run exactly, to the end, cannot be told from a
-republication (and then the data agree). Every other message carrying a step (command,
-excitation, controller and simulator status) belongs to the run whose state of that step was
-recorded last before it (a late answer to the previous run stays there), else to the first run
-recording that state after it (delivery across topics is not ordered), else to the run in
-progress when it was recorded. So no command of one run is ever matched to a state of another.
-`read_loop` refuses a bag of several runs unless given `run=k`; `read_runs` returns them all.
+unless the states that follow show it was the identical start of a reset (they differ, or go
+past the run's end): they then move to the new run with it. A reset that replays its run
+exactly and stops before that run's end cannot be told from a republication (the data agree).
+
+A command, excitation or controller status (each carries the step it answers) belongs to the
+run whose state of that step was recorded last before it (a late answer to the previous run
+stays there), else to the first run recording that state after it (delivery across topics is
+not ordered), else to the run in progress when it was recorded. A simulator status goes to the
+run in progress, or to the next one if its step is below what that run had reached (a reset
+publishes the new run's status just before its first state). So no command of one run is ever
+matched to a state of another. `read_loop` refuses a bag of several runs unless given `run=k`;
+`read_runs` returns them all.
 """
 
 import bisect
@@ -184,8 +188,22 @@ def _owner(runs, step, key):
             after = (keys[0], index)
     if before or after:
         return (before or after)[1]
+    return _in_progress(runs, key)
+
+
+def _in_progress(runs, key):
+    """The index of the run in progress when `key` was recorded."""
     starts = [run.start for run in runs]
     return max(bisect.bisect_right(starts, key) - 1, 0)
+
+
+def _status_owner(runs, step, key):
+    """The run a SimStatus (the plant's step when published) belongs to: the one in progress,
+    unless its step is below what that run had reached, as at a reset, which publishes the new
+    run's status just before its first state."""
+    k = _in_progress(runs, key)
+    reached = max((s for s, (first, _, _) in runs[k].first.items() if first < key), default=-1)
+    return k + 1 if k + 1 < len(runs) and step < reached else k
 
 
 def read_loop(path, scale=None, namespace=None, run=None):
@@ -247,7 +265,7 @@ def read_runs(path, scale=None, namespace=None):
         excitation[_owner(runs, decoded.step, key)].setdefault(decoded.step, decoded.tension)
     sim_status, controller = ([[] for _ in runs] for _ in range(2))
     for key, decoded in messages(wire.SIM_STATUS_TOPIC):
-        sim_status[_owner(runs, decoded.step, key)].append(decoded)
+        sim_status[_status_owner(runs, decoded.step, key)].append(decoded)
     for key, decoded in messages(wire.CONTROLLER_STATUS_TOPIC):
         controller[_owner(runs, decoded.step, key)].append(decoded)
     loops = []

@@ -18,18 +18,21 @@ skipped is counted.
 
 A bag that cannot give trustworthy windows raises `BagDataError`, one line naming the bag:
 empty; no tsr_msgs/msg/TsrState or TensionCommand messages (wrong types); a TsrState or
-TensionCommand definition that differs from the installed one (other fields or units); a
-state step recorded twice with different values (a reset or two simulators: which state a
-command answered is unknown; republished identical states are fine); no simulator RunInfo
-(units and sample period unknown); timed mode (a command is not tied to a step); another
-sample period or state size than asked; no complete window. A crash-truncated or damaged file
-is not an error: the reader keeps what it can recover (`bag.reader`) and a warning line says
-how much; so do lines for skipped gaps and for steps answered by differing commands.
+TensionCommand recorded with another definition than the installed one (`check_definition`: by
+type hash, else by the normalised definition, so a bag of stock `ros2 bag record` is read); no
+simulator RunInfo (units and sample period unknown); timed mode (a command is not tied to a
+step); another sample period or state size than asked; no complete window. A bag holding a
+reset (the step count restarts, `bag.tsr_loop`) is cut into its runs, each command matched to
+its own run's state, and windows come from every run, with a warning line. A crash-truncated
+or damaged file is not an error: the reader keeps what it can recover (`bag.reader`) and a
+warning line says how much; so do lines for skipped gaps and for steps answered by differing
+commands.
 
 Provenance per bag (in the Dataset and `BagWindows.provenance`): path, sha256 of its .mcap
 files (concatenated in split order, and per file), sha256 of its recorded messages
 (`messages_sha256`: the same for a recovered or re-chunked copy, whose files differ), message
-counts per topic, windows cut, gap counts, the RunInfo (plant, controller, model, excitation)
+counts per topic, windows cut, gap counts (with `resets` and per run of the loop its steps and
+windows, `loop_runs`), the RunInfo (plant, controller, model, excitation)
 and the units scale.
 """
 
