@@ -7,14 +7,17 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import get_typestore, Stores
+from tsr_sim import wire
 import yaml
 
 from tsr_koopman_ctrl import bag
 from tsr_koopman_ctrl.bag import definitions
 
+import rosbag2_style
+
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 HEADER_DEFS = {
-    'test_pkg/msg/Stamped': '# a stamped float\nHeader header\nfloat64 value  # [m]\n'
+    'test_pkg/msg/Stamped': '# a stamped float\nstd_msgs/Header header\nfloat64 value  # [m]\n'
                             'uint8 CONST=3\nbuiltin_interfaces/Time[] times\n',
     'std_msgs/msg/Header': 'builtin_interfaces/Time stamp\nstring frame_id\n',
     'builtin_interfaces/msg/Time': 'int32 sec\nuint32 nanosec\n',
@@ -42,13 +45,20 @@ def write_strings(directory, n, **kw):
     return writer
 
 
-def test_definition_with_dependencies_depth_first_once():
+def test_definition_is_spelled_as_rosbag2_spells_it():
+    """rosbag2 0.26 (local_message_definition_source.cpp, tag 0.26.5): each dependency once,
+    in name order (a std::set), after a blank line, the separator and 'MSG: ' with the name as
+    the field spells it; the texts unchanged. The reference is tests/bag/rosbag2_style.py."""
     text = definitions.message_definition('test_pkg/msg/Stamped', HEADER_DEFS.__getitem__)
     sep = '=' * 80
     assert text == (HEADER_DEFS['test_pkg/msg/Stamped']
-                    + f'{sep}\nMSG: std_msgs/msg/Header\n' + HEADER_DEFS['std_msgs/msg/Header']
-                    + f'{sep}\nMSG: builtin_interfaces/msg/Time\n'
-                    + HEADER_DEFS['builtin_interfaces/msg/Time'])
+                    + f'\n{sep}\nMSG: builtin_interfaces/Time\n'
+                    + HEADER_DEFS['builtin_interfaces/msg/Time']
+                    + f'\n{sep}\nMSG: std_msgs/Header\n' + HEADER_DEFS['std_msgs/msg/Header'])
+    assert text == rosbag2_style.full_text(
+        'test_pkg/msg/Stamped', lambda package, name: HEADER_DEFS[f'{package}/msg/{name}'])
+    for type_name in wire.LOOP_TOPIC_TYPES.values():
+        assert definitions.message_definition(type_name) == rosbag2_style.full_text(type_name)
 
 
 def test_round_trip_with_own_reader_and_rosbags(tmp_path):

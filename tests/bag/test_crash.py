@@ -251,7 +251,8 @@ def write_killed_bag(tmp_path, n=900, kill_at=700):
         clock.now = 0.01 * i
         t = 1_700_000_000_000_000_000 + 1_000_000 * i
         if i % 3:
-            writer.write('/chatter', cdr_string(f'msg {i}'), log_time_ns=t)
+            writer.write('/chatter', cdr_string(f'msg {i}'), log_time_ns=t,
+                         publish_time_ns=t - 1000 - i)   # sent before received
             written.append(('/chatter', 'std_msgs/msg/String', t, f'msg {i}'))
         else:
             writer.write('/numbers', cdr_int(-i), log_time_ns=t)

@@ -21,7 +21,7 @@ from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.learning import recorded
 
 MSG_DIR = ROOT / 'ros2_ws' / 'src' / 'tsr_msgs' / 'msg'
-TSR_TYPES = ('TsrState', 'TensionCommand', 'RunInfo', 'Excitation')
+TSR_TYPES = ('TsrState', 'TensionCommand', 'RunInfo', 'Excitation', 'SimStatus')
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 for _name in TSR_TYPES:
     TYPESTORE.register(get_types_from_msg((MSG_DIR / f'{_name}.msg').read_text(),
@@ -32,9 +32,10 @@ SCALE = Scale(orbit_rate=1.0e-3, tether_length=50.0e3, mass=35.0)
 H = dynamics.PAPER_STEP
 
 
-def topic(name, type_name, definition=None):
+def topic(name, type_name, definition=None, type_hash=None):
     return bag.TopicInfo(name, type_name, definition or definitions.message_definition(type_name),
-                         definitions.type_hash(type_name), QOS)
+                         definitions.type_hash(type_name) if type_hash is None else type_hash,
+                         QOS)
 
 
 def _cdr(type_name, **fields):
@@ -91,13 +92,18 @@ def loop_data(n, seed=0):
 
 
 def write_loop(directory, x, u, steps=None, excitation=None, simulator=None, scale=SCALE,
-               run_info=True, state_definition=None, after=(), chunk_size=1 << 20):
+               run_info=True, state_definition=None, after=(), chunk_size=1 << 20,
+               state_hash=None, runs=()):
     """A lockstep loop as the recorder stores it; u[i] NaN: no command for state i. `after`:
-    extra (topic, cdr) messages at the end (republished states, stray commands)."""
+    extra (topic, cdr) messages at the end (republished states, stray commands). `runs`: more
+    (x, u, steps) runs recorded after it, as a simulator reset between them leaves them.
+    `state_definition`, `state_hash`: what the state topic is recorded with (default: the
+    installed definition and hash; '' hash: none)."""
     steps = np.arange(len(x)) if steps is None else np.asarray(steps)
     with bag.BagWriter(str(directory), chunk_size=chunk_size) as writer:
         writer.add_topic(topic('/tsr/run_info', 'tsr_msgs/msg/RunInfo'))
-        writer.add_topic(topic('/tsr/state', 'tsr_msgs/msg/TsrState', state_definition))
+        writer.add_topic(topic('/tsr/state', 'tsr_msgs/msg/TsrState', state_definition,
+                               state_hash))
         writer.add_topic(topic('/tsr/tension_cmd', 'tsr_msgs/msg/TensionCommand'))
         writer.add_topic(topic('/tsr/excitation', 'tsr_msgs/msg/Excitation'))
         time = [0]
@@ -109,13 +115,14 @@ def write_loop(directory, x, u, steps=None, excitation=None, simulator=None, sca
         if run_info:
             write('/tsr/run_info', run_info_cdr('simulator', simulator or simulator_info(scale)))
             write('/tsr/run_info', run_info_cdr('controller', controller_info(scale)))
-        for i, step in enumerate(steps):
-            write('/tsr/state', state_cdr(x[i], step, scale))
-            if not np.isnan(u[i]):
-                write('/tsr/tension_cmd', tension_cdr(u[i], step, scale))
-                if excitation is not None:
-                    write('/tsr/excitation', tension_cdr(excitation[i], step, scale,
-                                                         'tsr_msgs/msg/Excitation'))
+        for run_x, run_u, run_steps in [(x, u, steps)] + list(runs):
+            for i, step in enumerate(np.arange(len(run_x)) if run_steps is None else run_steps):
+                write('/tsr/state', state_cdr(run_x[i], step, scale))
+                if not np.isnan(run_u[i]):
+                    write('/tsr/tension_cmd', tension_cdr(run_u[i], step, scale))
+                    if excitation is not None:
+                        write('/tsr/excitation', tension_cdr(excitation[i], step, scale,
+                                                             'tsr_msgs/msg/Excitation'))
         for name, data in after:
             write(name, data)
     return directory
@@ -276,6 +283,94 @@ def test_the_messages_hash_is_the_recorded_messages_not_the_files(good_bag, tmp_
     assert first['messages_sha256'] not in (first['sha256'], different['sha256'])
 
 
+# --------------------------------------------------------------------------- runs
+
+def write_messages(directory, messages):
+    """The simulator's RunInfo, then (topic, cdr) `messages`, into a loop bag, 1 us apart."""
+    messages = [('/tsr/run_info', run_info_cdr('simulator', simulator_info()))] + messages
+    with bag.BagWriter(str(directory)) as writer:
+        for name, type_name in (('/tsr/run_info', 'tsr_msgs/msg/RunInfo'),
+                                ('/tsr/state', 'tsr_msgs/msg/TsrState'),
+                                ('/tsr/tension_cmd', 'tsr_msgs/msg/TensionCommand'),
+                                ('/tsr/sim_status', 'tsr_msgs/msg/SimStatus')):
+            writer.add_topic(topic(name, type_name))
+        for i, (name, data) in enumerate(messages):
+            writer.write(name, data, log_time_ns=1000 * (i + 1))
+    return directory
+
+
+def lockstep(x, u):
+    return [m for i in range(len(x)) for m in (('/tsr/state', state_cdr(x[i], i)),
+                                               ('/tsr/tension_cmd', tension_cdr(u[i], i)))]
+
+
+def test_each_run_of_a_reset_bag_reads_back_as_written(tmp_path):
+    x, u, _ = loop_data(40)
+    x2, u2, _ = loop_data(35, seed=7)
+    path = write_messages(tmp_path / 'b', lockstep(x, u) + lockstep(x2, u2))
+    runs = bag.read_runs(path)
+    assert [(loop.run, loop.runs) for loop in runs] == [(0, 2), (1, 2)]
+    for loop, (xs, us) in zip(runs, ((x, u), (x2, u2))):
+        np.testing.assert_array_equal(loop.step, np.arange(len(xs)))
+        np.testing.assert_allclose(loop.x, xs, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(loop.u, us, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(loop.tau, np.arange(len(xs)) * H, rtol=0, atol=1e-9)
+        assert loop.counts == {'states': len(xs), 'commands': len(xs), 'republished_states': 0,
+                               'repeated_commands': 0, 'conflicting_commands': 0,
+                               'orphan_commands': 0}
+    np.testing.assert_array_equal(bag.read_loop(path, run=1).x, runs[1].x)
+    with pytest.raises(ValueError, match=r'has no run 2: run 0: steps 0-39 \(40 states\), '):
+        bag.read_loop(path, run=2)
+
+
+def test_no_command_of_one_run_is_matched_to_a_state_of_the_other(tmp_path):
+    """Late answers to run 0 recorded after the reset (to its last state, and to a step run 1
+    reaches later) stay in run 0; run 1's steps get run 1's commands."""
+    x, u, _ = loop_data(40)
+    x2, u2, _ = loop_data(35, seed=7)
+    run1 = lockstep(x2, u2)
+    messages = (lockstep(x, u)[:-1] + run1[:1]                      # reset before command 39
+                + [('/tsr/tension_cmd', tension_cdr(u[39], 39)),     # run 0's late answer
+                   ('/tsr/tension_cmd', tension_cdr(9.0, 5))]        # a stray late one
+                + run1[1:])
+    first, second = bag.read_runs(write_messages(tmp_path / 'b', messages))
+    np.testing.assert_allclose(first.u, u, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(second.u, u2, rtol=0, atol=1e-12)
+    assert first.counts['conflicting_commands'] == 1 and second.counts['commands'] == 35
+
+
+def test_a_halted_run_stays_halted_after_the_reset_s_status(tmp_path):
+    """The reset publishes the new run's status (step 0) before its first state: it is run 1's,
+    and run 0 keeps the halt it ended with."""
+    x, u, _ = loop_data(40)
+    x2, u2, _ = loop_data(30, seed=7)
+
+    def status(code, step):
+        return ('/tsr/sim_status', _cdr('tsr_msgs/msg/SimStatus', header=_header(0.0),
+                                        status=code, message='', step=step,
+                                        commands_accepted=0, rejected_non_finite=0,
+                                        rejected_negative=0, rejected_over_limit=0,
+                                        rejected_stale=0, command_timeouts=0))
+    first, second = bag.read_runs(write_messages(
+        tmp_path / 'b', lockstep(x, u) + [status(1, 40), status(0, 0)] + lockstep(x2, u2)))
+    assert first.halted and first.sim_status.step == 40
+    assert not second.halted and second.sim_status.step == 0
+
+
+def test_a_reset_to_the_same_start_is_one_run_once_the_states_differ(tmp_path):
+    """Run 1 starts with run 0's first five states: republished states, until its sixth
+    differs; then they are run 1's, not run 0's."""
+    x, u, _ = loop_data(40)
+    x2, u2, _ = loop_data(30, seed=7)
+    x2[:5], u2[:5] = x[:5], u[:5]
+    first, second = bag.read_runs(write_messages(tmp_path / 'b', lockstep(x, u)
+                                                 + lockstep(x2, u2)))
+    assert first.counts['republished_states'] == 0 and first.step.size == 40
+    np.testing.assert_allclose(second.x, x2, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(second.u, u2, rtol=0, atol=1e-12)
+    assert second.counts['repeated_commands'] == 0
+
+
 # --------------------------------------------------------------------------- bad bags
 
 def bad(path, match, **options):
@@ -310,20 +405,80 @@ def test_a_bag_of_other_types(tmp_path):
 
 
 def test_another_message_definition(tmp_path):
+    """Another field type, name or order is refused: by the type hash when the bag has one, by
+    the normalised definition when it has none."""
     x, u, _ = loop_data(40)
     installed = definitions.message_definition('tsr_msgs/msg/TsrState')
-    changed = installed.replace('deployed tether length [m]', 'deployed tether length [km]')
+    changed = installed.replace('float64 length ', 'float32 length ')
     assert changed != installed
-    message = bad(write_loop(tmp_path / 'b', x, u, state_definition=changed),
+    message = bad(write_loop(tmp_path / 'b', x, u, state_definition=changed, state_hash=''),
                   'TsrState was recorded with another message definition')
-    assert '[km]' in message
+    assert ("tsr_msgs/TsrState declaration 5: 'float32 length' in the bag, 'float64 length' "
+            'installed') in message
+    swapped = installed.replace('float64 beta ', 'float64 tmp ').replace(
+        'float64 beta_rate', 'float64 beta').replace('float64 tmp ', 'float64 beta_rate ')
+    bad(write_loop(tmp_path / 'c', x, u, state_definition=swapped, state_hash=''),
+        "declaration 8: 'float64 beta_rate' in the bag, 'float64 beta' installed")
+    other_hash = 'RIHS01_' + '0' * 64
+    message = bad(write_loop(tmp_path / 'd', x, u, state_hash=other_hash),
+                  f'type hash {other_hash} in the bag, RIHS01_')
+
+
+def test_the_same_type_spelled_otherwise_is_accepted(tmp_path):
+    """Same hash, or no hash and the same normalised definition: other spellings of the same
+    type (the project's earlier 'MSG: pkg/msg/Type' without blank lines, dependencies in field
+    order; other comments and whitespace) give the same windows. Comments are ignored though
+    ours carry units: the type hash ignores them too, and units are REP 103 SI by convention."""
+    x, u, _ = loop_data(40)
+    sep = '=' * 80
+    read = definitions._interface_file
+    header, time = (open(read(t, '.msg')).read()
+                    for t in ('std_msgs/msg/Header', 'builtin_interfaces/msg/Time'))
+    installed = definitions.message_definition('tsr_msgs/msg/TsrState')
+    state = open(read('tsr_msgs/msg/TsrState', '.msg')).read()
+    old_spelling = (f'{state.rstrip()}\n{sep}\nMSG: std_msgs/msg/Header\n{header.rstrip()}\n'
+                    f'{sep}\nMSG: builtin_interfaces/msg/Time\n{time}')
+    commented = installed.replace('[m]', '[km]').replace('float64 theta ', 'float64   theta ')
+    expected = recorded.read_windows(write_loop(tmp_path / 'a', x, u), steps=30).data.x
+    for name, text, type_hash in (('old', old_spelling, ''), ('comments', commented, ''),
+                                  ('hash', commented, None)):
+        windows = recorded.read_windows(write_loop(tmp_path / name, x, u, state_definition=text,
+                                                   state_hash=type_hash), steps=30)
+        np.testing.assert_array_equal(windows.data.x, expected)
+
+
+def test_a_reset_splits_the_bag_into_runs_and_windows_come_from_each(tmp_path):
+    """A reset restarts the step count: the runs are cut apart, each command stays with its
+    own run's state (a late answer to run 0 recorded after the reset included), and both runs
+    give windows."""
+    x, u, _ = loop_data(40)
+    x2, u2, _ = loop_data(35, seed=7)
+    path = write_loop(tmp_path / 'b', x, u, runs=[(x2, u2, None)])
+    with pytest.raises(ValueError) as caught:
+        bag.read_loop(path)
+    assert str(caught.value) == (
+        f'{path} holds 2 runs of the loop (the simulator was reset): run 0: steps 0-39 (40 '
+        'states), run 1: steps 0-34 (35 states); read one with read_loop(path, run=k), k in '
+        '0..1, or all with read_runs(path)')
+    windows = recorded.read_windows(path, steps=10)
+    assert len(windows.data) == 3 + 3
+    np.testing.assert_allclose(windows.data.x[3], x2[:11], atol=1e-12)
+    np.testing.assert_allclose(windows.data.u[3], u2[:10], atol=1e-12)
+    assert windows.provenance['gaps']['resets'] == 1
+    assert [r['states'] for r in windows.provenance['gaps']['loop_runs']] == [40, 35]
+    assert f'{path}: 2 runs of the loop (the simulator was reset: ' in windows.warnings[0]
 
 
 def test_duplicate_steps_with_different_states(tmp_path):
+    """A state step recorded again with other values is a reset: a run of its own, not a state
+    that makes the commands' states unknown."""
     x, u, _ = loop_data(40)
     other = x[10] + 0.01
-    bad(write_loop(tmp_path / 'b', x, u, after=[('/tsr/state', state_cdr(other, 10))]),
-        'state step 10 recorded twice with different values')
+    path = write_loop(tmp_path / 'b', x, u, after=[('/tsr/state', state_cdr(other, 10))])
+    windows = recorded.read_windows(path, steps=30)
+    np.testing.assert_allclose(windows.data.x[0], x[:31], atol=1e-12)
+    assert [r['states'] for r in windows.provenance['gaps']['loop_runs']] == [40, 1]
+    np.testing.assert_allclose(bag.read_loop(path, run=1).x, [other], atol=1e-12)
 
 
 def test_no_complete_window(tmp_path):

@@ -16,7 +16,9 @@ from torch import multiprocessing
 from tsr_sim import dynamics
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / 'learning'))
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / 'bag'))
 from test_distributed import free_port  # noqa: E402
+from test_rosbag2_style import stock_bag  # noqa: E402
 from test_recorded import H, write_loop  # noqa: E402
 
 from tsr_koopman_ctrl.learning import dataset as datasets  # noqa: E402
@@ -131,6 +133,20 @@ def test_fine_tuning_records_bags_init_and_errors_before_and_after(init_model, b
     assert 'held_out 30-step summed MSE before (3 windows)' in printed
     assert 'held_out 30-step summed MSE, before -> after' in printed
     assert f'new  {out}: mean' in printed
+
+
+def test_retrain_on_bags_stock_rosbag2_wrote(tmp_path, capsys):
+    """`ros2 bag record` bags (tests/bag/rosbag2_style.py: rosbag2 0.26's layout and schema
+    spelling) train and score like the project's own."""
+    train, held = (stock_bag(tmp_path / name, n, seed)[0]
+                   for name, n, seed in (('train', 130, 1), ('held', 100, 2)))
+    code, printed, err = run(capsys, '--bags', train, '--held-out', held, '--out',
+                             tmp_path / 'm', '--config-json', json.dumps({**TINY, 'epochs': 1}),
+                             '--test-trajectories', '0')
+    assert code == 0, err
+    info = json.loads((tmp_path / 'm' / 'model.json').read_text())['retrain']
+    assert info['bags'][0]['messages']['/tsr/state'] == 130 and info['bags'][0]['windows'] > 0
+    assert info['errors_after']['held_out']['windows'] == 3
 
 
 def test_a_bag_both_trained_on_and_held_out_is_refused(bags, tmp_path, capsys):

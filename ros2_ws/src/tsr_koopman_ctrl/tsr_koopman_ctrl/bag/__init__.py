@@ -2,6 +2,7 @@
 
     from tsr_koopman_ctrl.bag import BagReader, read_loop
     loop = read_loop('bags/deploy_...')          # states, tensions, statuses, compute times
+    runs = read_runs('bags/reset_...')           # one RecordedLoop per run (a reset between)
     print(loop.report.summary())                 # one line per file: complete, truncated, ...
 
 A bag a crash left open: `python -m tsr_koopman_ctrl.tools.bag recover BAG` (tools/bag.py).
@@ -9,5 +10,5 @@ A bag a crash left open: `python -m tsr_koopman_ctrl.tools.bag recover BAG` (too
 
 from tsr_koopman_ctrl.bag.definitions import TopicInfo  # noqa: F401
 from tsr_koopman_ctrl.bag.reader import BagReader, FileReport, ReadReport  # noqa: F401
-from tsr_koopman_ctrl.bag.tsr_loop import read_loop, RecordedLoop  # noqa: F401
+from tsr_koopman_ctrl.bag.tsr_loop import read_loop, read_runs, RecordedLoop  # noqa: F401
 from tsr_koopman_ctrl.bag.writer import BagWriter  # noqa: F401

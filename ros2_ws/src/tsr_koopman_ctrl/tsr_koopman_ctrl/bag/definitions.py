@@ -68,44 +68,51 @@ def _interface_file(type_name, suffix):
     return os.path.join(get_package_share_directory(package), kind, name + suffix)
 
 
+# rosbag2_cpp/src/rosbag2_cpp/message_definitions/local_message_definition_source.cpp
+# (ros2/rosbag2 tag 0.26.5, 6927adf5): the field types of a .msg text (MSG_FIELD_TYPE_REGEX) and
+# the primitives that are not dependencies (PRIMITIVE_TYPES, where wstring is missing: rosbag2
+# would look for a message 'pkg/wstring', find none and store no definition at all).
+_FIELD_TYPE = re.compile(r'(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+')
+
+
 def message_definition(type_name, read_msg=None):
-    """Full ros2msg definition of `pkg/msg/Type`: its .msg text, then every dependency after a
-    separator line and 'MSG: pkg/msg/Dep', depth first, each once (what rosbag2 stores)."""
+    """Full ros2msg definition of `pkg/msg/Type` exactly as rosbag2 (Jazzy) stores it: its .msg
+    text, then each dependency once, depth first, as a newline, a separator line, 'MSG: ' and
+    the dependency named as its field spells it ('std_msgs/Header'), and its .msg text.
+
+    `LocalMessageDefinitionSource::get_full_text` in rosbag2_cpp (tag 0.26.5, file
+    rosbag2_cpp/src/rosbag2_cpp/message_definitions/local_message_definition_source.cpp): a
+    text's dependencies are a std::set, so they follow in name order, not field order; the texts
+    are the files' own, unchanged. `read_msg(pkg/msg/Type)` returns a .msg text (default: the
+    installed one)."""
     read_msg = read_msg or (lambda t: open(_interface_file(t, '.msg')).read())
-    parts, seen = [], set()
+    seen = set()
 
-    def visit(name, is_root):
-        if name in seen:
-            return
-        seen.add(name)
-        text = read_msg(name)
-        parts.append(text if is_root else f'{DEFINITION_SEPARATOR}\nMSG: {name}\n{text}')
-        for dep in _field_types(text, name.split('/')[0]):
-            visit(dep, False)
+    def full_text(name, text):
+        package = name.split('/')[0]
+        result = text
+        for dep in sorted(_dependencies(text, package)):
+            if dep in seen:
+                continue
+            seen.add(dep)
+            dep_package, dep_name = dep.split('/')[0], dep.split('/')[-1]
+            result += f'\n{DEFINITION_SEPARATOR}\nMSG: {dep}\n'
+            result += full_text(dep, read_msg(f'{dep_package}/msg/{dep_name}'))
+        return result
 
-    visit(type_name, True)
-    return '\n'.join(part.rstrip('\n') for part in parts) + '\n'
+    return full_text(type_name, read_msg(type_name))
 
 
-def _field_types(text, package):
-    """Non-primitive field types of a .msg text, as pkg/msg/Type, in order."""
-    for line in text.splitlines():
-        line = line.split('#', 1)[0].strip()
-        if not line:
+def _dependencies(text, package):
+    """The non-primitive field types of a .msg text as its fields spell them ('pkg/Type'; a
+    bare 'Type' is in `package`), as rosbag2 finds them."""
+    found = set()
+    for match in _FIELD_TYPE.finditer(text):
+        name = match.group(1)
+        if name in _PRIMITIVES:
             continue
-        type_token, rest = line.split(None, 1)
-        if '=' in rest.split()[0]:        # a constant: TYPE NAME=VALUE
-            continue
-        base = re.sub(r'\[.*\]$', '', type_token).split('<=')[0]
-        if base in _PRIMITIVES:
-            continue
-        if base == 'Header':
-            yield 'std_msgs/msg/Header'
-        elif '/' in base:
-            pkg, name = base.split('/')[0], base.split('/')[-1]
-            yield f'{pkg}/msg/{name}'
-        else:
-            yield f'{package}/msg/{base}'
+        found.add(name if '/' in name else f'{package}/{name}')
+    return found
 
 
 def type_hash(type_name):
@@ -116,3 +123,97 @@ def type_hash(type_name):
     except (OSError, KeyError, ValueError):
         return ''
     return next((h['hash_string'] for h in hashes if h['type_name'] == type_name), '')
+
+
+def normalized_definition(text, type_name):
+    """A full ros2msg definition reduced to what makes the type: {'pkg/Type': (declaration,
+    ...)} for the type and every dependency, each declaration 'TYPE NAME', 'TYPE NAME DEFAULT'
+    or 'TYPE NAME=VALUE' in the order written, types spelled 'pkg/Type'.
+
+    Gone: comments, blank lines, whitespace, the separator and 'MSG:' spelling, 'pkg/msg/Type'
+    against 'pkg/Type' (a bare 'Type' is in the section's package; 'Header' is
+    std_msgs/Header) and the order of the dependencies, which differ between writers
+    (rosbag2 sorts them by name). Kept: every field's type (arrays and bounds included), name
+    and default, every constant's value, and their order."""
+    sections, name, lines = {}, _short(type_name), []
+    for line in text.replace('\r\n', '\n').split('\n'):
+        stripped = line.strip()
+        if len(stripped) >= 3 and set(stripped) == {'='}:
+            sections[name] = lines
+            name, lines = None, []
+        elif name is None and stripped:
+            kind, _, dep = stripped.partition(':')
+            name = _short(dep.strip()) if kind.strip() == 'MSG' else stripped
+        else:
+            lines.append(line)
+    sections[name] = lines
+    return {section: tuple(filter(None, (_declaration(line, section.split('/')[0])
+                                         for line in body)))
+            for section, body in sections.items()}
+
+
+def definition_difference(recorded, installed, type_name):
+    """'' if two full definitions of `type_name` declare the same type (`normalized_definition`),
+    else where they first differ, in a few words."""
+    ours, theirs = (normalized_definition(t, type_name) for t in (recorded, installed))
+    for section in [_short(type_name)] + sorted(set(ours) | set(theirs)):
+        if section not in ours or section not in theirs:
+            where = 'the bag' if section in ours else 'the installed one'
+            return f'{section} is a dependency only in {where}'
+        a, b = ours[section], theirs[section]
+        if a != b:
+            i = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
+            here = repr(a[i]) if i < len(a) else 'nothing'
+            there = repr(b[i]) if i < len(b) else 'nothing'
+            return f'{section} declaration {i + 1}: {here} in the bag, {there} installed'
+    return ''
+
+
+def _short(type_name):
+    """'pkg/msg/Type' or 'pkg/Type' -> 'pkg/Type'."""
+    parts = type_name.split('/')
+    return f'{parts[0]}/{parts[-1]}' if len(parts) > 1 else type_name
+
+
+def _declaration(line, package):
+    """One .msg line as 'TYPE NAME[ DEFAULT]' or 'TYPE NAME=VALUE', comments and whitespace
+    gone ('' for a blank or comment line)."""
+    line = _uncommented(line).strip()
+    if not line:
+        return ''
+    type_token, _, rest = line.partition(' ') if ' ' in line else line.partition('\t')
+    rest = rest.strip()
+    name, equals, value = rest.partition('=')
+    if equals and ' ' not in name.strip():           # a constant: NAME=VALUE, NAME = VALUE
+        return f'{_field_type(type_token, package)} {name.strip()}={value.strip()}'
+    return ' '.join([_field_type(type_token, package)] + rest.split())
+
+
+def _uncommented(line):
+    """The line up to its comment: a '#' outside quotes (a string constant may hold one)."""
+    quote = None
+    for i, char in enumerate(line):
+        if quote:
+            quote = None if char == quote else quote
+        elif char in '"\'':
+            quote = char
+        elif char == '#':
+            return line[:i]
+    return line
+
+
+def _field_type(token, package):
+    base, bracket, array = token.partition('[')
+    bound = ''
+    if '<=' in base:                                  # string<=10
+        base, bound = base.split('<=', 1)
+        bound = '<=' + bound
+    if base in _PRIMITIVES:
+        pass
+    elif '/' in base:
+        base = _short(base)
+    elif base == 'Header':
+        base = 'std_msgs/Header'
+    else:
+        base = f'{package}/{base}'
+    return base + bound + bracket + array

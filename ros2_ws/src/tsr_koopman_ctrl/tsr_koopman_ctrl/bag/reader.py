@@ -27,6 +27,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import get_chunk_data_stream
+import yaml
 import zstandard
 
 MAGIC = b'\x89MCAP0\r\n'
@@ -99,9 +100,10 @@ class ReadReport:
 class BagReader:
     """Read a bag directory (or one .mcap file), recovering files a crash left without summary.
 
-    Iterate `messages()` or `decoded()`; `report` then tells what was read, file by file, and
-    `topics` every topic with a channel in the files read (messages or not), in file order.
-    Raises ValueError when no file of the bag holds a readable message.
+    Iterate `messages()` or `decoded()`; `report` then tells what was read, file by file,
+    `topics` every topic with a channel in the files read (messages or not), in file order, and
+    `type_hash(topic)` the type hash the bag stores for it. Raises ValueError when no file of the
+    bag holds a readable message.
     """
 
     def __init__(self, path):
@@ -114,7 +116,19 @@ class BagReader:
         self.report = ReadReport()
         self.schemas = {}              # type name -> Schema record
         self.topics = {}               # topic name -> type name
+        self.channel_hashes = {}       # topic name -> its channel's topic_type_hash
+        self._listed_hashes = None
         self._check_readable()
+
+    def type_hash(self, topic):
+        """The RIHS01 type hash the bag stores for `topic`: its MCAP channel's
+        `topic_type_hash`, else metadata.yaml's `type_description_hash` ('' if neither; read
+        the messages first)."""
+        if self.channel_hashes.get(topic):
+            return self.channel_hashes[topic]
+        if self._listed_hashes is None:
+            self._listed_hashes = metadata_type_hashes(self.path)
+        return self._listed_hashes.get(topic, '')
 
     def messages(self, topics=None):
         self.report = ReadReport()
@@ -135,6 +149,7 @@ class BagReader:
                     schema = schemas.get(record.schema_id)
                     channels[record.id] = (record.topic, schema.name if schema else '')
                     self.topics.setdefault(*channels[record.id])
+                    self.channel_hashes[record.topic] = record.metadata.get('topic_type_hash', '')
 
     def decoded(self, topics=None):
         """Yield (BagMessage, decoded message) using the schema embedded in the bag."""
@@ -158,6 +173,18 @@ class BagReader:
                 records.close()
             probed.append(report.line())
         raise ValueError(f'no readable messages in {self.path}: {"; ".join(probed)}')
+
+
+def metadata_type_hashes(path):
+    """topic -> type_description_hash of a bag directory's metadata.yaml ({} if it has none or
+    it cannot be read)."""
+    try:
+        with open(os.path.join(path, 'metadata.yaml')) as f:
+            info = yaml.safe_load(f)['rosbag2_bagfile_information']
+        return {t['topic_metadata']['name']: t['topic_metadata'].get('type_description_hash', '')
+                for t in info['topics_with_message_count']}
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return {}
 
 
 def bag_files(path):

@@ -9,7 +9,12 @@ it)::
                                  offered_qos_profiles and topic_type_hash; a 'rosbag2' metadata
                                  record; zstd-compressed chunks
 
-Messages are stored as the CDR bytes received, never re-serialised.
+Messages are stored as the CDR bytes received, never re-serialised, with the times rosbag2
+0.26 (Jazzy) stores (`write_received`): the log time is when the message was received (the
+rmw's received_timestamp; the node's clock under use_sim_time), the publish time when it was
+sent (source_timestamp), and the sequence number is 0, which rosbag2 0.26 writes for every
+message (ros2/rosbag2 tag 0.26.5: rosbag2_storage_mcap/src/mcap_storage.cpp `write_lock_free`;
+rosbag2_transport/src/rosbag2_transport/recorder.cpp `create_subscription`).
 
 Crash safety. Messages wait in memory until their chunk is written, so the writer bounds that
 wait in bytes and in time: a chunk is written when it reaches `chunk_size` bytes, and the chunk
@@ -32,6 +37,7 @@ files hold (chunks written by size since then); the files, as read, are the trut
 """
 
 from dataclasses import dataclass
+import inspect
 import os
 import time
 
@@ -94,6 +100,26 @@ class _CountingFile:
         self._file.close()
 
 
+class ReceivedCallback:
+    """A subscription callback that gets rclpy's MessageInfo on every executor: calls
+    `function(msg, info)`; give it to `create_subscription` and feed `BagWriter.write_received`.
+
+    rclpy hands the info to a callback whose signature takes two arguments, so this one says
+    it does (`__signature__`). The Jazzy EventsExecutor (rclpy 7.1.6, events_executor.cpp
+    `HandleSubscriptionReady`: `callback(msg_info)`) then passes the (msg, info) pair as one
+    argument where the other executors pass two; both are taken."""
+
+    __signature__ = inspect.Signature(
+        [inspect.Parameter(name, inspect.Parameter.POSITIONAL_ONLY) for name in ('msg', 'info')])
+
+    def __init__(self, function):
+        self.function = function
+
+    def __call__(self, *args):
+        msg, info = args if len(args) == 2 else args[0]
+        return self.function(msg, info)
+
+
 def open_mcap(path, chunk_size=1 << 20):
     """A new MCAP file with the rosbag2 profile; returns (stream, writer)."""
     stream = _CountingFile(path)
@@ -103,10 +129,14 @@ def open_mcap(path, chunk_size=1 << 20):
 
 
 def finish_mcap(stream, writer, metadata):
-    """Close an MCAP file: the 'rosbag2' metadata record rosbag2 writes, summary, footer."""
+    """Close an MCAP file: the 'rosbag2' metadata record rosbag2 writes, summary, footer.
+
+    The record holds the bag's metadata (`bag_metadata`) without its metadata.yaml wrapper, as
+    rosbag2 0.26 writes and reads it: `MCAPStorage::update_metadata` and `read_metadata` in
+    rosbag2_storage_mcap/src/mcap_storage.cpp (tag 0.26.5), one 'serialized_metadata' key."""
+    information = metadata['rosbag2_bagfile_information']
     writer.add_metadata('rosbag2', {
-        'ROS_DISTRO': ROS_DISTRO,
-        'serialized_metadata': yaml.safe_dump(metadata, sort_keys=False)})
+        'serialized_metadata': yaml.safe_dump(information, sort_keys=False)})
     writer.finish()
     stream.close()
 
@@ -209,10 +239,26 @@ class BagWriter:
         self._register_pending(topic)
         self._write_metadata()
 
-    def write(self, topic, cdr_bytes, log_time_ns=None):
+    def write_received(self, topic, cdr_bytes, message_info, clock_ns=None):
+        """Write a message a subscription took, with rclpy's MessageInfo (the callback's second
+        argument), as rosbag2 0.26 records it: log time the received_timestamp, or `clock_ns`
+        when given (the node's clock under use_sim_time, as rosbag2 does), or now if the rmw
+        gives no reception time; publish time the source_timestamp (the log time if none)."""
+        received = int(message_info.get('received_timestamp') or 0)
+        if clock_ns is not None:
+            log_time_ns = int(clock_ns)
+        else:
+            log_time_ns = received if received > 0 else time.time_ns()
+        sent = int(message_info.get('source_timestamp') or 0)
+        self.write(topic, cdr_bytes, log_time_ns, sent if sent > 0 else log_time_ns)
+
+    def write(self, topic, cdr_bytes, log_time_ns=None, publish_time_ns=None):
+        """Write one message; the log time defaults to now, the publish time to the log time.
+        The sequence number is 0, as rosbag2 0.26 writes it."""
         if self._writer is None:
             raise ValueError(f'bag {self.directory} is closed')
         log_time_ns = time.time_ns() if log_time_ns is None else int(log_time_ns)
+        publish_time_ns = log_time_ns if publish_time_ns is None else int(publish_time_ns)
         current = self.files[-1]
         if current.count and self._file_full(current, log_time_ns):
             self._split()
@@ -222,7 +268,7 @@ class BagWriter:
         stream = self._stream
         written = stream.written
         self._writer.add_message(self._channel_ids[topic], log_time_ns, bytes(cdr_bytes),
-                                 log_time_ns, sequence=current.count)
+                                 publish_time_ns, sequence=0)
         current.add(log_time_ns)
         self.topic_counts[topic] += 1
         if stream.written != written:

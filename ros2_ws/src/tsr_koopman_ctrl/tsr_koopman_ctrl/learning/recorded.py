@@ -18,18 +18,21 @@ skipped is counted.
 
 A bag that cannot give trustworthy windows raises `BagDataError`, one line naming the bag:
 empty; no tsr_msgs/msg/TsrState or TensionCommand messages (wrong types); a TsrState or
-TensionCommand definition that differs from the installed one (other fields or units); a
-state step recorded twice with different values (a reset or two simulators: which state a
-command answered is unknown; republished identical states are fine); no simulator RunInfo
-(units and sample period unknown); timed mode (a command is not tied to a step); another
-sample period or state size than asked; no complete window. A crash-truncated or damaged file
-is not an error: the reader keeps what it can recover (`bag.reader`) and a warning line says
-how much; so do lines for skipped gaps and for steps answered by differing commands.
+TensionCommand recorded with another definition than the installed one (`check_definition`: by
+type hash, else by the normalised definition, so a bag of stock `ros2 bag record` is read); no
+simulator RunInfo (units and sample period unknown); timed mode (a command is not tied to a
+step); another sample period or state size than asked; no complete window. A bag holding a
+reset (the step count restarts, `bag.tsr_loop`) is cut into its runs, each command matched to
+its own run's state, and windows come from every run, with a warning line. A crash-truncated
+or damaged file is not an error: the reader keeps what it can recover (`bag.reader`) and a
+warning line says how much; so do lines for skipped gaps and for steps answered by differing
+commands.
 
 Provenance per bag (in the Dataset and `BagWindows.provenance`): path, sha256 of its .mcap
 files (concatenated in split order, and per file), sha256 of its recorded messages
 (`messages_sha256`: the same for a recovered or re-chunked copy, whose files differ), message
-counts per topic, windows cut, gap counts, the RunInfo (plant, controller, model, excitation)
+counts per topic, windows cut, gap counts (with `resets` and per run of the loop its steps and
+windows, `loop_runs`), the RunInfo (plant, controller, model, excitation)
 and the units scale.
 """
 
@@ -46,7 +49,7 @@ from tsr_sim import dynamics, wire
 
 from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.bag.reader import bag_files, BagReader, COMPLETE
-from tsr_koopman_ctrl.bag.tsr_loop import read_loop, STATE_TYPE, TENSION_TYPE
+from tsr_koopman_ctrl.bag.tsr_loop import read_runs, STATE_TYPE, TENSION_TYPE
 from tsr_koopman_ctrl.evaluation.figures import in_zone
 from tsr_koopman_ctrl.learning.dataset import concatenate, Dataset
 
@@ -156,48 +159,44 @@ def installed_definition(type_name):
                          f'found ({type(error).__name__}: {error}); is the workspace sourced?')
 
 
-def _lines(text):
-    return [line.rstrip() for line in text.replace('\r\n', '\n').strip('\n').split('\n')]
+@functools.lru_cache(maxsize=None)
+def installed_hash(type_name):
+    """The installed RIHS01 type hash of `type_name` ('' if the build has none)."""
+    return definitions.type_hash(type_name)
 
 
-def check_definition(bag, type_name, text):
-    """Refuse a schema that differs from the installed definition. The comparison is on the
-    text (trailing blanks aside), comments included: they carry the units."""
-    recorded, installed = _lines(text), _lines(installed_definition(type_name))
-    if recorded == installed:
-        return
-    line = next((i for i, (a, b) in enumerate(zip(recorded, installed)) if a != b),
-                min(len(recorded), len(installed)))
-    here = recorded[line] if line < len(recorded) else '<end>'
-    there = installed[line] if line < len(installed) else '<end>'
+def check_definition(bag, type_name, text, recorded_hash=''):
+    """Refuse a type recorded with another definition than the installed one.
+
+    By the RIHS01 type hash when the bag (channel or metadata.yaml) and the installation both
+    have one: it is what ROS itself compares. Else by the definitions normalised
+    (`definitions.normalized_definition`): writers spell the same type differently (rosbag2:
+    'MSG: std_msgs/Header', a blank line before each separator, dependencies sorted by name), so
+    only field types, names, defaults, constants and their order are compared. Comments are
+    left out although ours carry units: the type hash leaves them out too (a hash match says
+    nothing about them), and units on the wire are REP 103 SI by convention, which no comment
+    changes; a bag's own scale is its RunInfo, checked apart."""
+    ours = installed_hash(type_name)
+    if recorded_hash and ours:
+        if recorded_hash == ours:
+            return
+        difference = f'type hash {recorded_hash} in the bag, {ours} installed'
+    else:
+        difference = definitions.definition_difference(
+            text, installed_definition(type_name), type_name)
+        if not difference:
+            return
     raise BagDataError(bag, f'{type_name} was recorded with another message definition than '
-                       f'the installed one (line {line + 1}: {here!r} in the bag, {there!r} '
-                       'installed)')
-
-
-def _state_values(msg):
-    """Every field of a TsrState but the header, as floats (NaN-aware comparison)."""
-    return np.array([msg.theta, msg.theta_rate, msg.length, msg.length_rate,
-                     float(msg.has_out_of_plane), msg.beta, msg.beta_rate], dtype=float)
-
-
-@dataclasses.dataclass
-class _Topic:
-    """What one state or tension topic holds, keyed by step."""
-
-    first: dict = dataclasses.field(default_factory=dict)    # step -> first value
-    repeats: int = 0               # later messages for a step, identical to the first
-    conflicts: list = dataclasses.field(default_factory=list)   # steps with differing values
+                       f'the installed one ({difference})')
 
 
 def scan(bag, reader):
-    """One pass over the bag: message counts per topic, the topic types, the decoded states
-    and commands of every state and tension topic (their definitions checked first), and the
-    hash of the messages (`MessagesHash`)."""
+    """One pass over the bag: message counts per topic, the topic types, the hash of the
+    messages (`MessagesHash`), and every state and command checked (its definition against the
+    installed one, then that it decodes)."""
     from mcap_ros2.decoder import DecoderFactory
     factory, decoders, checked = DecoderFactory(), {}, {}
     counts, types, digest = collections.Counter(), {}, MessagesHash()
-    topics = collections.defaultdict(_Topic)
     for msg in reader.messages():
         counts[msg.topic] += 1
         digest.add(msg.topic, msg.type, msg.data)
@@ -205,33 +204,18 @@ def scan(bag, reader):
         if msg.type not in CHECKED_TYPES:
             continue
         schema = reader.schemas[msg.type]
-        if checked.get(msg.type) is not schema:    # every file of a bag has its own schema
-            check_definition(bag, msg.type, schema.data.decode('utf-8', 'replace'))
-            checked[msg.type] = schema
+        type_hash = reader.type_hash(msg.topic)
+        # Every file of a bag has its own schema, every topic its own hash.
+        if checked.get((msg.type, type_hash)) is not schema:
+            check_definition(bag, msg.type, schema.data.decode('utf-8', 'replace'), type_hash)
+            checked[msg.type, type_hash] = schema
             decoders[msg.type] = factory.decoder_for('cdr', schema)
         try:
-            decoded = decoders[msg.type](msg.data)
+            decoders[msg.type](msg.data)
         except Exception as error:
             raise BagDataError(bag, f'message {counts[msg.topic]} on {msg.topic} does not '
                                f'decode as {msg.type} ({type(error).__name__})')
-        if msg.type == STATE_TYPE:
-            value = _state_values(decoded)
-            same = np.array_equal
-        else:
-            value = float(decoded.tension)
-            same = _same_float
-        topic = topics[msg.topic]
-        if decoded.step not in topic.first:
-            topic.first[decoded.step] = value
-        elif same(topic.first[decoded.step], value, equal_nan=True):
-            topic.repeats += 1
-        else:
-            topic.conflicts.append(decoded.step)
-    return counts, types, topics, digest.hexdigest()
-
-
-def _same_float(a, b, equal_nan=True):
-    return a == b or (equal_nan and math.isnan(a) and math.isnan(b))
+    return counts, types, digest.hexdigest()
 
 
 def _namespace(bag, types, namespace):
@@ -311,20 +295,21 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     except ValueError as error:
         detail = str(error).split(': ', 1)[-1]
         raise BagDataError(bag, f'empty bag: no readable message ({detail})')
-    counts, types, topics, messages_digest = scan(bag, reader)
+    counts, types, messages_digest = scan(bag, reader)
     namespace = _namespace(bag, types, namespace)
-    state_topic = topics[wire.resolve(wire.STATE_TOPIC, namespace)]
-    tension_topic = topics[wire.resolve(wire.TENSION_TOPIC, namespace)]
-    if state_topic.conflicts:
-        step = state_topic.conflicts[0]
-        raise BagDataError(bag, f'state step {step} recorded twice with different values '
-                           f'({len(state_topic.conflicts)} such steps): the loop was reset or '
-                           'two simulators published, so which state a command answered is '
-                           'unknown')
     try:
-        loop = read_loop(bag, namespace=namespace)
+        loops = read_runs(bag, namespace=namespace)
     except ValueError as error:
         raise BagDataError(bag, str(error))
+    # Nothing silently dropped: every state and command recorded is in exactly one run.
+    for topic, key, what in ((wire.STATE_TOPIC, 'states', 'states'),
+                             (wire.TENSION_TOPIC, 'commands', 'commands')):
+        recorded = counts[wire.resolve(topic, namespace)]
+        read = sum(loop.counts[key] for loop in loops)
+        if read != recorded:
+            raise BagDataError(bag, f'read back inconsistently: {read} of {recorded} {what} '
+                               'in the runs of the loop')
+    loop = loops[0]
     simulator = loop.run_info.get('simulator')
     if not simulator:
         raise BagDataError(bag, f'no simulator RunInfo on {wire.RUN_INFO_TOPIC}: its units '
@@ -336,30 +321,91 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     bag_h = float(simulator.get('step', dynamics.PAPER_STEP))
     if h is not None and not math.isclose(bag_h, h, rel_tol=1e-9):
         raise BagDataError(bag, f'sample period h = {bag_h:g} tau; the model needs {h:g}')
-    if state_dim is not None and loop.x.shape[1] != state_dim:
-        raise BagDataError(bag, f'{loop.x.shape[1]}-component states; the model needs '
-                           f'{state_dim}')
+    for each in loops:
+        if state_dim is not None and each.x.shape[1] != state_dim:
+            raise BagDataError(bag, f'{each.x.shape[1]}-component states; the model needs '
+                               f'{state_dim}')
 
-    # Nothing silently misaligned: read_loop's states and tensions are the ones scanned,
-    # each tension the first command whose step is its state's step.
-    step = loop.step
-    if step.tolist() != sorted(state_topic.first):
-        raise BagDataError(bag, 'read back inconsistently: the loop\'s steps differ from the '
-                           'recorded states')
-    scale = loop.scale
-    commanded = np.array([s in tension_topic.first for s in step.tolist()])
-    recorded_u = np.array([scale.tension_to_u(tension_topic.first.get(s, math.nan))
-                           for s in step.tolist()])
-    if not np.array_equal(recorded_u, loop.u, equal_nan=True):
-        raise BagDataError(bag, 'read back inconsistently: a tension is not the first command '
-                           'answering its step')
-    max_tension = simulator.get('max_tension')
-    raw = np.array([tension_topic.first.get(s, math.nan) for s in step.tolist()])
+    cuts = [_cut_run(each, steps, stride, simulator.get('max_tension'), max_abs_state,
+                     validation_fraction, validation_offset) for each in loops]
+    gaps = {key: sum(cut['gaps'][key] for cut in cuts) for key in cuts[0]['gaps']}
+    gaps.update(first_step=int(loops[0].step[0]), last_step=int(loops[-1].step[-1]),
+                longest_run=max(cut['gaps']['longest_run'] for cut in cuts),
+                resets=len(loops) - 1,
+                loop_runs=[{'first_step': int(each.step[0]), 'last_step': int(each.step[-1]),
+                            'states': int(each.step.size), 'windows': cut['gaps']['windows']}
+                           for each, cut in zip(loops, cuts)])
+    windows = gaps['windows']
+    skipped = {k: gaps[k] for k in ('missing_steps', 'missing_commands', 'refused_commands',
+                                    'non_finite_states', 'out_of_bounds_states') if gaps[k]}
+    if not windows:
+        what = ', '.join(f'{v} {k.replace("_", " ")}' for k, v in skipped.items())
+        states = f'{gaps["states"]} states'
+        if len(loops) > 1:
+            states += f' in {len(loops)} runs'
+        raise BagDataError(bag, f'no complete {steps}-step window: {states}, longest '
+                           f'gap-free run {gaps["longest_run"]} steps'
+                           + (f' ({what})' if what else ''))
+
+    warnings = []
+    read_report = loop.report or reader.report
+    for file in read_report.files:
+        if file.state != COMPLETE:
+            use = '; its recovered windows are used' if file.messages else '; ignored'
+            warnings.append(f'{bag}: {file.line()}{use}')
+    if len(loops) > 1:
+        warnings.append(f'{bag}: {len(loops)} runs of the loop (the simulator was reset: '
+                        f'{", ".join(each.describe() for each in loops)}); windows are cut '
+                        'from each')
+    if skipped:
+        what = ', '.join(f'{v} {k.replace("_", " ")}' for k, v in skipped.items())
+        warnings.append(f'{bag}: gaps skipped ({what}); {windows} windows from '
+                        f'{gaps["runs"]} gap-free runs')
+    if gaps['conflicting_commands']:
+        warnings.append(f'{bag}: {gaps["conflicting_commands"]} steps answered by different '
+                        'commands: the first (the one a lockstep simulator applies) is used')
+
+    digest, files = content_hash(bag)
+    states_by_file = {f.path: (f.state, f.messages) for f in read_report.files}
+    for entry in files:
+        entry['state'], entry['messages'] = states_by_file.get(entry['file'], ('', 0))
+    controller = loop.run_info.get('controller', {})
+    excited = sum(int(np.count_nonzero(each.excitation)) for each in loops
+                  if each.excitation is not None)
+    zone_commands = {'steps': sum(cut['zone']['steps'] for cut in cuts),
+                     'sum': float(sum(cut['zone']['sum'] for cut in cuts))}
+    provenance = _json({
+        'source': 'bag', 'path': os.path.abspath(bag), 'sha256': digest, 'files': files,
+        'messages_sha256': messages_digest, 'messages': dict(sorted(counts.items())),
+        'namespace': namespace, 'steps': steps,
+        'windows': windows, 'h': bag_h, 'scale': dataclasses.asdict(loop.scale),
+        'plant': simulator, 'controller': controller.get('controller'),
+        'model': controller.get('model'), 'excitation': controller.get('excitation'),
+        'excited_steps': excited, 'halted': any(each.halted for each in loops),
+        'recovered': read_report.recovered, 'gaps': gaps, 'zone_commands': zone_commands,
+        'run_info': loop.run_info})
+
+    def joined(key):
+        parts = [cut[key] for cut in cuts if len(cut[key][0])]
+        if not parts:
+            return None
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    data = Dataset(*joined('train'), bag_h, [provenance])
+    held = joined('held')
+    validation = Dataset(*held, bag_h, [provenance]) if held else None
+    return BagWindows(bag, data, provenance, warnings, validation)
+
+
+def _cut_run(loop, steps, stride, max_tension, max_abs_state, validation_fraction,
+             validation_offset):
+    """The windows of one run of the loop: {'train': (x, u), 'held': (x, u), 'gaps': counts,
+    'zone': the in-zone commands}."""
+    step, x, u, raw = loop.step, loop.x, loop.u, loop.tension
+    commanded = ~np.isnan(raw)
     with np.errstate(invalid='ignore'):
         accepted = np.isfinite(raw) & (raw >= 0.0)
         if max_tension is not None:
             accepted &= raw <= float(max_tension) * (1.0 + 1e-12)
-    x, u = loop.x, loop.u
     finite = np.isfinite(x).all(axis=1)
     with np.errstate(invalid='ignore'):
         state_ok = dynamics.in_domain(x) & np.all(np.abs(x) <= max_abs_state, axis=1)
@@ -374,71 +420,29 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     def cut(where):
         return (np.array([x[s:s + steps + 1] for s in where]).reshape(-1, steps + 1, x.shape[1]),
                 np.array([u[s:s + steps] for s in where]).reshape(-1, steps))
-    xs, us = cut(starts)
 
     # The commands that held the plant in the 1% zone, each step once: retrain's anchor estimate.
     with np.errstate(invalid='ignore'):
         holding = link & in_zone(x[:-1])
-    zone_commands = {'steps': int(holding.sum()), 'sum': float(u[:-1][holding].sum())}
-
     missing = np.diff(step)[~contiguous] - 1
-    state_steps = set(state_topic.first)
+    counts = loop.counts
     gaps = {
-        'states': int(len(step)), 'first_step': int(step[0]), 'last_step': int(step[-1]),
-        'gaps': int(len(missing)), 'missing_steps': int(missing.sum()),
+        'states': int(len(step)), 'gaps': int(len(missing)),
+        'missing_steps': int(missing.sum()),
         'missing_commands': int((~commanded[:-1]).sum()),
         'refused_commands': int((commanded[:-1] & ~accepted[:-1]).sum()),
         'non_finite_states': int((~finite).sum()),
         'out_of_bounds_states': int((finite & ~state_ok).sum()),
-        'orphan_commands': sum(s not in state_steps for s in tension_topic.first),
-        'republished_states': state_topic.repeats,
-        'repeated_commands': tension_topic.repeats,
-        'conflicting_commands': len(tension_topic.conflicts),
+        'orphan_commands': counts['orphan_commands'],
+        'republished_states': counts['republished_states'],
+        'repeated_commands': counts['repeated_commands'],
+        'conflicting_commands': counts['conflicting_commands'],
         'runs': len(runs), 'longest_run': max((n for _, n in runs), default=0),
         'transitions': int(link.sum()), 'windows': len(starts),
         'validation_windows': len(held_starts),
     }
-    skipped = {k: gaps[k] for k in ('missing_steps', 'missing_commands', 'refused_commands',
-                                    'non_finite_states', 'out_of_bounds_states') if gaps[k]}
-    if not starts:
-        what = ', '.join(f'{v} {k.replace("_", " ")}' for k, v in skipped.items())
-        raise BagDataError(bag, f'no complete {steps}-step window: {len(step)} states, longest '
-                           f'gap-free run {gaps["longest_run"]} steps'
-                           + (f' ({what})' if what else ''))
-
-    warnings = []
-    read_report = loop.report or reader.report
-    for file in read_report.files:
-        if file.state != COMPLETE:
-            use = '; its recovered windows are used' if file.messages else '; ignored'
-            warnings.append(f'{bag}: {file.line()}{use}')
-    if skipped:
-        what = ', '.join(f'{v} {k.replace("_", " ")}' for k, v in skipped.items())
-        warnings.append(f'{bag}: gaps skipped ({what}); {len(starts)} windows from '
-                        f'{len(runs)} gap-free runs')
-    if tension_topic.conflicts:
-        warnings.append(f'{bag}: {len(tension_topic.conflicts)} steps answered by different '
-                        'commands: the first (the one a lockstep simulator applies) is used')
-
-    digest, files = content_hash(bag)
-    states_by_file = {f.path: (f.state, f.messages) for f in read_report.files}
-    for entry in files:
-        entry['state'], entry['messages'] = states_by_file.get(entry['file'], ('', 0))
-    controller = loop.run_info.get('controller', {})
-    excitation = np.asarray(loop.excitation if loop.excitation is not None else [])
-    provenance = _json({
-        'source': 'bag', 'path': os.path.abspath(bag), 'sha256': digest, 'files': files,
-        'messages_sha256': messages_digest, 'messages': dict(sorted(counts.items())),
-        'namespace': namespace, 'steps': steps,
-        'windows': len(starts), 'h': bag_h, 'scale': dataclasses.asdict(scale),
-        'plant': simulator, 'controller': controller.get('controller'),
-        'model': controller.get('model'), 'excitation': controller.get('excitation'),
-        'excited_steps': int(np.count_nonzero(excitation)), 'halted': loop.halted,
-        'recovered': read_report.recovered, 'gaps': gaps, 'zone_commands': zone_commands,
-        'run_info': loop.run_info})
-    data = Dataset(xs, us, bag_h, [provenance])
-    validation = Dataset(*cut(held_starts), bag_h, [provenance]) if held_starts else None
-    return BagWindows(bag, data, provenance, warnings, validation)
+    return {'train': cut(starts), 'held': cut(held_starts), 'gaps': gaps,
+            'zone': {'steps': int(holding.sum()), 'sum': float(u[:-1][holding].sum())}}
 
 
 def read_bags(paths, **options):

@@ -23,7 +23,7 @@ from rosgraph_msgs.msg import Clock
 from tsr_sim.wire import CLOCK_TOPIC, LATCHED_TOPICS, LOOP_TOPIC_TYPES
 
 from tsr_koopman_ctrl.bag import definitions
-from tsr_koopman_ctrl.bag.writer import BagWriter
+from tsr_koopman_ctrl.bag.writer import BagWriter, ReceivedCallback
 
 DEFAULT_TOPICS = list(LOOP_TOPIC_TYPES)
 DEFAULT_TYPES = list(LOOP_TOPIC_TYPES.values())
@@ -159,10 +159,12 @@ class RecorderNode(Node):
         if publishers:
             self.writer.set_offered_qos(topic, [offered_qos(p) for p in publishers])
 
-    def record(self, topic, data):
+    def record(self, topic, data, info):
         if topic in self.writer.qos_pending:      # first message before the timer saw them
             self.learn_qos(topic)
-        self.writer.write(topic, data, self.get_clock().now().nanoseconds)
+        clock = self.get_clock()       # rosbag2 logs on the node's clock under use_sim_time only
+        self.writer.write_received(
+            topic, data, info, clock.now().nanoseconds if clock.ros_time_is_active else None)
 
     def subscribe(self, topic, type_name, publishers, latched=False):
         """Subscribe raw; with no publisher known yet: reliable, and volatile (matches any)
@@ -181,7 +183,8 @@ class RecorderNode(Node):
             profile.reliability = ReliabilityPolicy.BEST_EFFORT
         self.subscribed[topic] = self.create_subscription(
             message_class(type_name), topic,
-            lambda data, t=topic: self.record(t, data), profile, raw=True)
+            ReceivedCallback(lambda data, info, t=topic: self.record(t, data, info)), profile,
+            raw=True)
         self.get_logger().info(f'recording {topic} [{type_name}]')
 
     def silent_topics(self):
