@@ -5,4 +5,4 @@
 set -eo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 source scripts/setup.sh
-exec python -m tsr_koopman_ctrl.tools.deploy "$@"
+exec python -m tsr_koopman_ctrl.commands.deploy "$@"

@@ -18,7 +18,7 @@ DEPENDENCY_NAMES = {
     'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm', 'torch': 'python3-torch',
     'mcap': 'mcap', 'mcap_ros2': 'mcap-ros2-support', 'osqp': 'osqp', 'pysindy': 'pysindy',
     'safetensors': 'safetensors', 'daqp': 'daqp', 'optuna': 'optuna', 'casadi': 'casadi',
-    'quadprog': 'quadprog', 'clarabel': 'clarabel'}
+    'quadprog': 'quadprog', 'clarabel': 'clarabel', 'pytest': 'python3-pytest'}
 #: Declared but not imported, and why (the manifest says so too).
 NOT_IMPORTED = {'tsr_koopman_ctrl': {'std_msgs', 'rosgraph_msgs', 'zstandard'}}
 

@@ -18,7 +18,7 @@ import yaml
 
 from tsr_koopman_ctrl import bag
 from tsr_koopman_ctrl.bag import definitions, reader as bag_reader
-from tsr_koopman_ctrl.tools import bag as bag_tool
+from tsr_koopman_ctrl.commands import bag as bag_tool
 
 INT_QOS = [definitions.qos_dict(1, 3, 2, 2, 1, None, None, None)]   # depth 3, best effort
 
@@ -412,7 +412,7 @@ def test_recover_of_one_file_says_it_takes_a_bag_directory(tmp_path, capsys):
 
 def test_bag_module_runs_as_a_command(tmp_path):
     killed, _ = write_killed_bag(tmp_path, n=100, kill_at=100)
-    run = subprocess.run([sys.executable, '-m', 'tsr_koopman_ctrl.tools.bag', 'info',
+    run = subprocess.run([sys.executable, '-m', 'tsr_koopman_ctrl.commands.bag', 'info',
                           str(killed)], capture_output=True, text=True)
     assert run.returncode == 0 and run.stdout.startswith(f'bag:        {killed}\n')
 

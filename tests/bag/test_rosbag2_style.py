@@ -16,7 +16,7 @@ from conftest import ROOT
 from tsr_koopman_ctrl import bag
 from tsr_koopman_ctrl.bag import definitions, writer as bag_writer
 from tsr_koopman_ctrl.learning import recorded
-from tsr_koopman_ctrl.tools import bag as bag_tool
+from tsr_koopman_ctrl.commands import bag as bag_tool
 
 import rosbag2_style
 

@@ -154,7 +154,7 @@ def test_recorder_bag_of_a_killed_deployment_recovers_with_the_command(start_nod
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import get_typestore, Stores
 
-    from tsr_koopman_ctrl.tools import bag as bag_tool
+    from tsr_koopman_ctrl.commands import bag as bag_tool
     from tsr_msgs.msg import TsrState
     from tsr_sim import ros_io
     seen = []

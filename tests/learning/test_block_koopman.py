@@ -12,7 +12,7 @@ from conftest import tiny_config
 from tsr_koopman_ctrl.learning import block_koopman
 from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
 from tsr_koopman_ctrl.model import lifted, model_file
-from tsr_koopman_ctrl.tools import train
+from tsr_koopman_ctrl.commands import train
 
 
 def observable_block(net):

@@ -13,7 +13,7 @@ from conftest import tiny_config
 from tsr_koopman_ctrl.learning import deep_koopman
 from tsr_koopman_ctrl.learning import trainer as training
 from tsr_koopman_ctrl.model import lifted, model_file
-from tsr_koopman_ctrl.tools import train
+from tsr_koopman_ctrl.commands import train
 
 
 def test_training_lowers_loss_and_numpy_model_matches_torch(tiny_model, small_data):

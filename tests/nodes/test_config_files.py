@@ -6,8 +6,8 @@ import subprocess
 import pytest
 import yaml
 
-from tsr_koopman_ctrl.tools.config import example_yaml
-from tsr_koopman_ctrl.tools.launcher import executable
+from tsr_koopman_ctrl.commands.config import example_yaml
+from tsr_koopman_ctrl.launcher import executable
 
 from conftest import ROOT
 
@@ -16,7 +16,7 @@ CONFIG = ROOT / 'ros2_ws' / 'src' / 'tsr_koopman_ctrl' / 'config'
 
 def test_controller_config_is_derived_from_the_law_settings():
     """One declaration: the file equals what the settings classes write (regenerate it with
-    python -m tsr_koopman_ctrl.tools.config)."""
+    python -m tsr_koopman_ctrl.commands.config)."""
     assert (CONFIG / 'controller.yaml').read_text() == example_yaml()
     params = yaml.safe_load(example_yaml())['/**/tsr_controller']['ros__parameters']
     from tsr_koopman_ctrl.control import KoopmanMpc, LinearisedLqr
@@ -64,11 +64,11 @@ def test_sim_example_params_run_a_lockstep_simulator(ros, start_node):
 
 
 @pytest.mark.ros
-def test_bad_parameters_fail_at_start_with_one_line(domain_id):
+def test_bad_parameters_fail_at_start_with_one_line(ros_domain):
     for args in (['-p', 'mode:=bogus'], ['-p', 'substeps:=0'], ['-p', 'step:=fast'],
                  ['-p', 'initial_state:=[0.0, 0.0, -1.5, 0.5]']):
         result = subprocess.run([executable('tsr_sim', 'sim_node'), '--ros-args', *args],
-                                env=dict(os.environ, ROS_DOMAIN_ID=str(domain_id)),
+                                env=dict(os.environ, ROS_DOMAIN_ID=str(ros_domain)),
                                 capture_output=True, text=True, timeout=30)
         assert result.returncode == 2, result.stderr
         assert result.stderr.startswith('cannot start:') and 'Traceback' not in result.stderr

@@ -187,7 +187,7 @@ def test_watchdogs_run_on_sim_time_without_a_clock(ros, start_node):
 def test_help_starts_no_node(tmp_path):
     import os
     import subprocess
-    from tsr_koopman_ctrl.tools.launcher import executable
+    from tsr_koopman_ctrl.launcher import executable
     for package, exe in (('tsr_sim', 'sim_node'), ('tsr_koopman_ctrl', 'controller_node'),
                          ('tsr_koopman_ctrl', 'recorder_node')):
         start = time.monotonic()

@@ -71,6 +71,9 @@ def test_set_parameters_are_applied_or_refused(ros, start_node, tmp_path):
     ros.spin_until(lambda: len(commands) > 50, timeout=30.0, what='the loop to run')
     assert max(commands) > 1.5       # linear_lqr from the paper's start: up to ~8.7 N
 
+    # The safe tension must stay within the clamp: lowered first, then the clamp.
+    assert ros.set_parameters('/tsr_controller', {'max_tension': 1.0})[0][0] is False
+    assert ros.set_parameters('/tsr_controller', {'safe_tension': 1.0}) == [(True, '')]
     assert ros.set_parameters('/tsr_controller', {'max_tension': 1.0}) == [(True, '')]
     commands.clear()
     ros.spin_until(lambda: len(commands) > 50, what='commands after the new clamp')

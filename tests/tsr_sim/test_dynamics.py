@@ -123,3 +123,14 @@ def test_in_domain_flags_nonpositive_length_and_nan():
 def test_bad_dimension_is_a_clear_error():
     with pytest.raises(ValueError, match='4 .planar. or 6'):
         dynamics.derivative(np.zeros(5), 0.0)
+
+
+def test_symbolic_rk4_is_the_simulator_s_rk4():
+    import casadi
+    x, u = casadi.SX.sym('x', 4), casadi.SX.sym('u')
+    end, path = dynamics.symbolic_rk4(x, u, 0.05, 5)
+    step = casadi.Function('step', [x, u], [end])
+    x0 = np.array([0.1, -0.2, -0.9, 0.5])
+    assert len(path) == 5
+    np.testing.assert_allclose(np.asarray(step(x0, 2.0)).ravel(),
+                               dynamics.rk4_step(x0, 2.0, 0.05, 5), atol=1e-12)

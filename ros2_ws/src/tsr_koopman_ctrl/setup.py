@@ -35,20 +35,18 @@ setup(
     maintainer='tsr-koopman',
     maintainer_email='tsr-koopman@example.com',
     description='Koopman-model tension control of tethered space robot deployment: control '
-                'laws, learning, bags, the controller and recorder nodes and the tools.',
+                'laws, learning, bags, the controller and recorder nodes, the deployment API '
+                'and its commands.',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
             'controller_node = tsr_koopman_ctrl.nodes.controller_node:main',
             'recorder_node = tsr_koopman_ctrl.nodes.recorder_node:main',
-            'deploy = tsr_koopman_ctrl.tools.deploy:main',
-            'train = tsr_koopman_ctrl.tools.train:main',
-            'retrain = tsr_koopman_ctrl.tools.retrain:main',
-            'evaluate = tsr_koopman_ctrl.tools.evaluate:main',
-            'mpc_sweep = tsr_koopman_ctrl.tools.mpc_sweep:main',
-            'bag = tsr_koopman_ctrl.tools.bag:main',
-            'frontier = tsr_koopman_ctrl.tools.frontier:main',
-            'config = tsr_koopman_ctrl.tools.config:main',
+            'deploy = tsr_koopman_ctrl.commands.deploy:main',
+            'train = tsr_koopman_ctrl.commands.train:main',
+            'retrain = tsr_koopman_ctrl.commands.retrain:main',
+            'bag = tsr_koopman_ctrl.commands.bag:main',
+            'config = tsr_koopman_ctrl.commands.config:main',
         ],
     },
 )

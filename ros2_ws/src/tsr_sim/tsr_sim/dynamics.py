@@ -51,19 +51,48 @@ def equilibrium_state(dim=PLANAR_DIM):
     return np.zeros(dim)
 
 
+def planar_rates(theta, rate, offset, speed, u, sin=math.sin, cos=math.cos):
+    """The planar equations, written once: d/dtau of [theta, theta', l - 1, l'] under tension
+    u, for floats, numpy arrays or CasADi symbols alike (give their `sin` and `cos`)."""
+    length, w = offset + 1.0, rate + 1.0
+    sin_t, cos_t = sin(theta), cos(theta)
+    return (rate, -2.0 * (speed / length) * w - 3.0 * sin_t * cos_t,
+            speed, length * (w * w + 3.0 * cos_t * cos_t - 1.0) - u)
+
+
+def rk4(rates, state, u, dt, substeps, path=None):
+    """RK4, written once: `state` a tuple of components (floats, arrays or CasADi symbols),
+    `rates(*state, u)` their derivatives, u held over dt in `substeps` steps. Appends every
+    substep's state to `path` when given."""
+    step = dt / substeps
+    half, sixth = 0.5 * step, step / 6.0
+    for _ in range(substeps):
+        k1 = rates(*state, u)
+        k2 = rates(*(x + half * k for x, k in zip(state, k1)), u)
+        k3 = rates(*(x + half * k for x, k in zip(state, k2)), u)
+        k4 = rates(*(x + step * k for x, k in zip(state, k3)), u)
+        state = tuple(x + sixth * (a + 2.0 * b + 2.0 * c + d)
+                      for x, a, b, c, d in zip(state, k1, k2, k3, k4))
+        if path is not None:
+            path.append(state)
+    return state
+
+
+def _numpy_planar_rates(theta, rate, offset, speed, u):
+    return planar_rates(theta, rate, offset, speed, u, np.sin, np.cos)
+
+
 def derivative(x, u):
     """Return dx/dtau for states x (..., 4 or 6) under tension u (...)."""
     x = np.asarray(x, dtype=float)
     u = np.asarray(u, dtype=float)
     check_state_dim(x.shape[-1])
+    if x.shape[-1] == PLANAR_DIM:
+        return np.stack(_numpy_planar_rates(*np.moveaxis(x, -1, 0), u), axis=-1)
     theta, w, v = x[..., THETA], x[..., THETA_RATE] + 1.0, x[..., LENGTH_RATE]
     length = x[..., LENGTH_OFFSET] + 1.0
     sin_t, cos_t = np.sin(theta), np.cos(theta)
     stretch = v / length
-    if x.shape[-1] == PLANAR_DIM:
-        theta_acc = -2.0 * stretch * w - 3.0 * sin_t * cos_t
-        length_acc = length * (w * w + 3.0 * cos_t * cos_t - 1.0) - u
-        return np.stack([x[..., THETA_RATE], theta_acc, v, length_acc], axis=-1)
     beta, beta_rate = x[..., BETA], x[..., BETA_RATE]
     sin_b, cos_b = np.sin(beta), np.cos(beta)
     theta_acc = 2.0 * w * (beta_rate * sin_b / cos_b - stretch) - 3.0 * sin_t * cos_t
@@ -74,21 +103,22 @@ def derivative(x, u):
 
 
 def rk4_step(x, u, h=PAPER_STEP, substeps=1):
-    """Advance x by one sample period h with u held constant, using `substeps` RK4 steps.
+    """Advance x (..., 4 or 6) by one sample period h with u held constant, using `substeps`
+    RK4 steps (`rk4`).
 
     The paper samples with one RK4 step of h = 0.01. Near l -> 0 with large l' that single step
     is inaccurate (docs/physics.md, numerics); the simulator uses substeps for the plant.
     """
     x = np.asarray(x, dtype=float)
     u = np.asarray(u, dtype=float)
-    dt = h / substeps
-    for _ in range(substeps):
-        k1 = derivative(x, u)
-        k2 = derivative(x + 0.5 * dt * k1, u)
-        k3 = derivative(x + 0.5 * dt * k2, u)
-        k4 = derivative(x + dt * k3, u)
-        x = x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-    return x
+    if x.shape[-1] == PLANAR_DIM:
+        return np.stack(rk4(_numpy_planar_rates, tuple(np.moveaxis(x, -1, 0)), u, h,
+                            substeps), axis=-1)
+    check_state_dim(x.shape[-1])
+    state = rk4(lambda *v: tuple(np.moveaxis(derivative(np.stack(v[:-1], axis=-1), v[-1]),
+                                             -1, 0)),
+                tuple(np.moveaxis(x, -1, 0)), u, h, substeps)
+    return np.stack(state, axis=-1)
 
 
 def planar_step(x, u, h=PAPER_STEP, substeps=1):
@@ -96,30 +126,19 @@ def planar_step(x, u, h=PAPER_STEP, substeps=1):
     advances every sample. Numpy's per-call overhead dominates for a 4-vector (~0.9 ms against
     ~60 us for 10 substeps); the arithmetic is the same and agrees to rounding (a test checks).
     Returns a numpy array; non-finite values propagate (check `in_domain`)."""
-    theta, rate, offset, speed = (float(v) for v in x)
-    u = float(u)
-    dt = h / substeps
+    return np.array(rk4(planar_rates, tuple(float(v) for v in x), float(u), h, substeps))
 
-    def derivative_at(theta, rate, offset, speed):
-        length, w = offset + 1.0, rate + 1.0
-        sin_t, cos_t = math.sin(theta), math.cos(theta)
-        return (rate, -2.0 * (speed / length) * w - 3.0 * sin_t * cos_t,
-                speed, length * (w * w + 3.0 * cos_t * cos_t - 1.0) - u)
 
-    for _ in range(substeps):
-        k1 = derivative_at(theta, rate, offset, speed)
-        k2 = derivative_at(theta + 0.5 * dt * k1[0], rate + 0.5 * dt * k1[1],
-                           offset + 0.5 * dt * k1[2], speed + 0.5 * dt * k1[3])
-        k3 = derivative_at(theta + 0.5 * dt * k2[0], rate + 0.5 * dt * k2[1],
-                           offset + 0.5 * dt * k2[2], speed + 0.5 * dt * k2[3])
-        k4 = derivative_at(theta + dt * k3[0], rate + dt * k3[1], offset + dt * k3[2],
-                           speed + dt * k3[3])
-        sixth = dt / 6.0
-        theta += sixth * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0])
-        rate += sixth * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1])
-        offset += sixth * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2])
-        speed += sixth * (k1[3] + 2.0 * k2[3] + 2.0 * k3[3] + k4[3])
-    return np.array([theta, rate, offset, speed])
+def symbolic_rk4(x, u, dt, substeps):
+    """The planar model's RK4 for CasADi expressions (x a 4-vector, u a scalar): the end state
+    and every substep's state, as the simulator's `rk4_step` computes them (needs casadi)."""
+    import casadi
+
+    def rates(*state):
+        return planar_rates(*state, sin=casadi.sin, cos=casadi.cos)
+    path = []
+    end = rk4(rates, tuple(x[i] for i in range(PLANAR_DIM)), u, dt, substeps, path)
+    return casadi.vertcat(*end), [casadi.vertcat(*state) for state in path]
 
 
 def step(x, u, h=PAPER_STEP, substeps=1):

@@ -22,7 +22,7 @@ in progress is closed and the file flushed to the OS once its oldest message is 
 seconds old (checked in `write()` and in `flush_if_due()`, which a recorder calls from a timer
 so that an idle stream is flushed too). After a SIGKILL the OS still holds every byte flushed, so
 at most the last `flush_period` of messages (and at most one chunk) is lost; `BagReader` reads
-the rest and `python -m tsr_koopman_ctrl.tools.bag recover` makes a complete bag of it. There is
+the rest and `python -m tsr_koopman_ctrl.commands.bag recover` makes a complete bag of it. There is
 no fsync: a power loss can lose what the OS had not written to the disk yet.
 
 A topic's offered QoS can be learnt after it is added (a recorder subscribes before any

@@ -19,6 +19,6 @@ from tsr_koopman_ctrl.control.koopman_nmpc import KoopmanNmpc  # noqa: F401
 from tsr_koopman_ctrl.control.physics_nmpc import PhysicsNmpc  # noqa: F401
 from tsr_koopman_ctrl.control.limiter import TensionLimiter  # noqa: F401
 from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr  # noqa: F401
-from tsr_koopman_ctrl.control.loop import closed_loop, TimedLaw  # noqa: F401
+from tsr_koopman_ctrl.control.loop import closed_loop  # noqa: F401
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree  # noqa: F401
 from tsr_koopman_ctrl.control.registry import CONTROLLERS, make_controller  # noqa: F401

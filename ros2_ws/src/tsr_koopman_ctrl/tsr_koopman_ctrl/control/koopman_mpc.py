@@ -84,7 +84,7 @@ class KoopmanMpc(Law):
         q = lifted_state_weight(self.model, s)
         self.z_ref, self.u_hat_ref = self.model.reference()
         # psi_uu(0) and psi_uu(u_max): with psi_ux(x) they bound u_hat at each step.
-        self.input_range = [float(self.model.input_map(u)) for u in (0.0, self.u_max)]
+        self.bound_tension(0.0, self.u_max)
         q_bar = scipy.linalg.block_diag(*([q] * (n_steps - 1) + [self.terminal_weight(q)]))
         free, forced, drift_gain = prediction_matrices(a, b, n_steps)
         drift = drift_gain @ self.reference_drift()
@@ -149,6 +149,11 @@ class KoopmanMpc(Law):
         c = self.model.C
         jacobian, b_x = self.model.local_linear_model()
         return c.T @ discrete_lqr_gain(jacobian, b_x, c @ q @ c.T, self.settings.r)[1] @ c
+
+    def bound_tension(self, low, high):
+        """The QP's bounds, on the lifted input: [psi_uu(low), psi_uu(high)] (psi_ux is frozen
+        at the measured state in `compute`)."""
+        self.input_range = [float(self.model.input_map(u)) for u in (low, high)]
 
     def reset(self):
         super().reset()

@@ -1,10 +1,14 @@
-"""The interface every tension law implements, ROS-free.
+"""The interface every tension law implements, ROS-free: what a law offers is declared here,
+never probed.
 
 A law works in the paper's dimensionless variables: `compute(x)` takes the measured planar state
 [theta, theta', l - 1, l'] (a 3-D state is cut to its planar part) and returns the tension u; the
-caller passes u through `TensionLimiter`, the single output clamp. `reset()` forgets the past
-(before a new deployment). Settings come from the law's `Settings` class (`settings.py`); the
-sample period h and the tension limit u_max are the loop's, not the law's, so they are separate.
+loop's one step (`control.step.ControlStep`) adds the excitation, clamps it with
+`TensionLimiter` and tells the law what was sent (`applied`). `reset()` forgets the past (before
+a new run). Settings come from the law's `Settings` class (`settings.py`); the sample period h
+and the tension limit u_max are the loop's, not the law's, so they are separate. A law may plan
+with a learned model (`model`), bound the tension it plans with (`bound_tension`), count the
+steps its optimiser failed (`fallbacks`) and report on itself (`diagnostics`).
 """
 
 import math
@@ -51,6 +55,11 @@ class Law:
     def compute(self, x):
         """The tension for the measured state x (`planar_state` checks it)."""
         raise NotImplementedError
+
+    def bound_tension(self, low, high):
+        """The tensions the law may plan with, when they are not [0, u_max] (an offset-free
+        wrapper gives the felt range the actuator can reach). Laws without bounds of their own
+        ignore it: the clamp after them holds the limit."""
 
     def applied(self, command):
         """The command actually sent after `compute` (an excitation added, a clamp): a law

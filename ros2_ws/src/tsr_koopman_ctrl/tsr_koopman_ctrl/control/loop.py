@@ -7,7 +7,6 @@ deployed here and over DDS in lockstep sees the same numbers.
 
 from collections.abc import Mapping
 import numbers
-import time
 
 import numpy as np
 from tsr_sim import dynamics
@@ -19,7 +18,8 @@ from tsr_koopman_ctrl.control.step import ControlStep, Outcome
 
 
 def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
-                u_max=dynamics.TENSION_LIMIT, plant=None, scale=None, excitation=None):
+                u_max=dynamics.TENSION_LIMIT, plant=None, scale=None, excitation=None,
+                compute_seconds=None):
     """Run `controller` from `x0` for `steps` steps: returns the true states (k+1, n) and the
     commanded tensions (k,), k = steps unless the state would leave the domain: then the loop
     halts there, as the simulator does, and k < steps.
@@ -29,7 +29,8 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     `tether_length` for its units) or a plant variant's name or file; `scale`: the units the
     controller converts with (default: the paper's, `Scale()`); `excitation`: a
     `control.excitation.Excitation` added to the law's tension before the clamp, as the
-    controller node adds it (reset here).
+    controller node adds it (reset here); `compute_seconds`: a list the wall time of every
+    compute() call is appended to (the node times the same call).
     """
     if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 0:
         raise ValueError(f'closed_loop: steps must be an integer >= 0, got {steps!r}')
@@ -48,6 +49,8 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     for _ in range(steps):
         measured = scale.state_from_si(plant_scale.state_to_si(sim.measure()))
         result = step(measured)
+        if compute_seconds is not None:
+            compute_seconds.append(result.compute_seconds)
         if result.outcome is Outcome.NON_FINITE_OUTPUT:
             raise ValueError(f'{controller.name} produced a non-finite tension at step '
                              f'{len(tensions)}')
@@ -61,24 +64,3 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
         tensions.append(u)
         states.append(sim.state.copy())
     return np.array(states), np.array(tensions)
-
-
-class TimedLaw:
-    """A law whose compute() calls are timed (`seconds`, wall clock, one per call; cleared by
-    reset()); everything else is the law's."""
-
-    def __init__(self, law):
-        self.law, self.seconds = law, []
-
-    def __getattr__(self, name):
-        return getattr(self.law, name)
-
-    def reset(self):
-        self.law.reset()
-        self.seconds = []
-
-    def compute(self, x):
-        start = time.perf_counter()
-        u = self.law.compute(x)
-        self.seconds.append(time.perf_counter() - start)
-        return u

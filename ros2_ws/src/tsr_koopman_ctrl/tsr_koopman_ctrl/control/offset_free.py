@@ -20,9 +20,8 @@ import dataclasses
 from typing import ClassVar
 
 import numpy as np
-from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.control.law import planar_state
+from tsr_koopman_ctrl.control.law import Law, planar_state
 from tsr_koopman_ctrl.control.observer import (DisturbanceObserver, koopman_predictor,
                                                physics_predictor)
 from tsr_koopman_ctrl.control.settings import build, LawSettings, setting
@@ -56,30 +55,31 @@ class ObserverSettings(LawSettings):
                                    'measurement; the disturbance is corrected either way)')
 
 
-class OffsetFree:
-    """`law` wrapped with a disturbance observer; behaves as a law (reset, compute, name,
-    settings, fallbacks, model)."""
+class OffsetFree(Law):
+    """`law` wrapped with a disturbance observer; a law itself (its name, settings, model, h,
+    u_max and fallbacks are the wrapped law's)."""
 
     def __init__(self, law, settings=None, **overrides):
         self.law = law
+        self.name, self.Settings, self.settings = law.name, law.Settings, law.settings
+        self.h, self.u_max, self.model = law.h, law.u_max, law.model
         self.observer_settings = s = build(ObserverSettings, settings, overrides)
-        model = getattr(law, 'model', None)
-        if s.predictor == 'model' and model is None:
+        if s.predictor == 'model' and law.model is None:
             raise ValueError(f'observer.predictor model: {law.name} has no model')
-        use_model = s.predictor == 'model' or (s.predictor == 'auto' and model is not None)
-        predictor = (koopman_predictor(model) if use_model
-                     else physics_predictor(h=getattr(law, 'h', dynamics.PAPER_STEP)))
+        use_model = s.predictor == 'model' or (s.predictor == 'auto' and law.model is not None)
+        predictor = (koopman_predictor(law.model) if use_model
+                     else physics_predictor(h=law.h))
         self.observer = DisturbanceObserver(
             predictor, disturbance=s.disturbance, sensor_std=s.sensor_std,
             rate_noise_std=s.rate_noise_std, position_noise_std=s.position_noise_std,
             disturbance_walk_std=s.disturbance_walk_std,
             initial_disturbance_std=s.initial_disturbance_std, actuator_lag_tau=s.actuator_lag,
-            h=getattr(law, 'h', dynamics.PAPER_STEP))
+            h=law.h)
         self.reset()
 
-    def __getattr__(self, name):
-        # name, settings, model, u_max, h, fallbacks, gain ...: the wrapped law's
-        return getattr(self.law, name)
+    @property
+    def fallbacks(self):
+        return self.law.fallbacks
 
     def reset(self):
         self.law.reset()
@@ -97,10 +97,9 @@ class OffsetFree:
         # command): no tension, which the node reports as NON_FINITE_OUTPUT, not an exception.
         if not (np.all(np.isfinite(estimate)) and np.isfinite(self.observer.disturbance)):
             return float('nan')
-        if hasattr(self.law, 'input_range'):   # the law's own bounds: the felt range
-            low = max(self.observer.applied(0.0), 0.0)
-            high = max(self.observer.applied(self.law.u_max), low + 1e-6)
-            self.law.input_range = [float(self.law.model.input_map(u)) for u in (low, high)]
+        # A law with bounds of its own plans within the felt tensions the actuator can reach.
+        low = max(self.observer.applied(0.0), 0.0)
+        self.law.bound_tension(low, max(self.observer.applied(self.law.u_max), low + 1e-6))
         felt = self.law.compute(estimate if self.observer_settings.filtered_state else measured)
         command = min(max(self.observer.command_for(felt), 0.0), self.law.u_max)
         self.last_command = command   # the observer must know the clamped command

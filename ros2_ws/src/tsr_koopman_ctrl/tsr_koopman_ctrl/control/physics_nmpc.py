@@ -195,9 +195,8 @@ class PhysicsNmpc(Law):
 
         Also `predict(x0, u) -> nodes` (the same RK4, single shooting), `objective(w, p)` (to
         price the shifted previous plan) and `lqr_plan(x0, K)` (the cold start's guess)."""
-        # The model's symbolic RK4, shared with the minimum-time solver (one home).
-        from tsr_koopman_ctrl.evaluation.min_time import symbolic_rk4
         import casadi as ca
+        from tsr_sim.dynamics import symbolic_rk4     # the plant's one definition
         steps = len(self.durations)
         x0, q, r, eps = ca.SX.sym('x0', 4), ca.SX.sym('q', 4), ca.SX.sym('r'), ca.SX.sym('eps')
         p, slack_weight = ca.SX.sym('P', 4, 4), ca.SX.sym('w')

@@ -70,5 +70,5 @@ def closed_loop_figures(law, start, steps=2000, **loop):
     states, tensions = closed_loop(law, start, steps, **loop)
     figures = run_figures(np.arange(len(states)) * PAPER_STEP, states, tensions, start=start,
                           halted=len(states) <= steps)
-    figures['fallbacks'] = getattr(law, 'fallbacks', 0)
+    figures['fallbacks'] = law.fallbacks
     return figures

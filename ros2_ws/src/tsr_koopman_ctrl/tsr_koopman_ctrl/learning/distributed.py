@@ -1,6 +1,6 @@
 """Data-parallel training with PyTorch's own DistributedDataParallel (DDP).
 
-    torchrun --nproc_per_node=2 -m tsr_koopman_ctrl.tools.retrain --bags bags/ --out models/m
+    torchrun --nproc_per_node=2 -m tsr_koopman_ctrl.commands.retrain --bags bags/ --out models/m
 
 torchrun starts one process per rank with RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR and
 MASTER_PORT set; `start()` joins them into a process group (gloo on the CPU, NCCL when a GPU is

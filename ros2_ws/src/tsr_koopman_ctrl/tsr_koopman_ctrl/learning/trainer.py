@@ -3,7 +3,7 @@
 Each epoch prints the loss terms and the validation 30-step error; the best epoch so far is kept
 and is the model returned and saved; ``<out>/checkpoint.pt`` after every epoch lets a run
 resume after an interruption. CPU by default, CUDA when present. The command line is
-`tsr_koopman_ctrl.tools.train`.
+`tsr_koopman_ctrl.commands.train`.
 
 Fine-tuning: `fit(data, init=tensors)` starts from an existing model's weights and keeps its
 state normalisation. Data-parallel: inside a torch.distributed process group of more than one

@@ -134,6 +134,14 @@ def weights_sha256(directory):
         return hashlib.sha256(weights.read()).hexdigest()
 
 
+def check_free(out, overwrite=False):
+    """Refuse, unless `overwrite`, an `out` that already holds a model (a shipped one, a
+    finished training): a mistyped path must not replace it silently (ValueError, one line)."""
+    if not overwrite and os.path.isfile(os.path.join(out, META_FILE)):
+        raise ValueError(f'--out {out} already holds a model: write the new one elsewhere, or '
+                         'pass --overwrite to replace it')
+
+
 def mlp_shapes(prefix, inputs, hidden, layers, outputs):
     """Tensor names and shapes of an MLP stored as torch.nn.Sequential(Linear, act, ...)."""
     sizes = [inputs] + [hidden] * layers + [outputs]

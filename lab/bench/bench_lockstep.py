@@ -1,0 +1,43 @@
+"""Lockstep closed-loop steps per second over DDS: simulator and controller as two processes.
+
+Runs the main job (sim, controller, recorder) for --steps steps and reads the rate off the
+bag: steps between the first and last state message divided by the log-time span.
+"""
+
+import argparse
+import os
+import tempfile
+
+from tsr_sim.wire import resolve, STATE_TOPIC
+
+from tsr_koopman_ctrl.bag import BagReader
+from tsr_koopman_ctrl.commands import deploy
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--steps', type=int, default=3000)
+    parser.add_argument('--law', default='koopman_mpc',
+                        help="the law (default the main job's); linear_lqr with "
+                        "--set observer.disturbance=none (~2 us per step) measures the "
+                        'transport alone')
+    parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
+                        help='a controller setting, as deploy --set')
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        bags = os.path.join(tmp, 'bags')
+        if deploy.main(['--law', args.law, '--steps', str(args.steps),
+                        '--out', os.path.join(tmp, 'out'), '--bags', bags,
+                        *[item for value in args.set for item in ('--set', value)]]) != 0:
+            raise SystemExit('deployment failed')
+        bag_dir = os.path.join(bags, os.listdir(bags)[0])
+        times = [m.log_time_ns for m in BagReader(bag_dir).messages({resolve(STATE_TOPIC)})]
+    span = (times[-1] - times[0]) * 1e-9
+    print(f'lockstep over DDS ({args.law}{", " if args.set else ""}{" ".join(args.set)}): '
+          f'{len(times) - 1} steps in {span:.2f} s = '
+          f'{(len(times) - 1) / span:,.0f} steps/s '
+          f'({span / (len(times) - 1) * 1e3:.2f} ms per state -> command -> state round trip)')
+
+
+if __name__ == '__main__':
+    main()

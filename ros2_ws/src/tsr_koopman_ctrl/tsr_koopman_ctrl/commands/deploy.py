@@ -1,0 +1,129 @@
+"""The main job: deploy the TSR in closed loop over DDS and leave a bag, a plot and a summary.
+
+    ros2 run tsr_koopman_ctrl deploy [--law koopman_mpc] [--model DIR|NAME] [--preset NAME]
+        [--set SECTION.SETTING=VALUE ...] [--plant NAME|FILE] [--steps 2000] [--x0 ...]
+        [--namespace NS]
+
+Starts the simulator (lockstep), the controller and the recorder as three processes on a DDS
+domain of their own (`deployment.Deployment`), waits for the run to end, closes the bag and
+reads the run back from it: every figure of the table comes from the bag. Exit status 1 if the
+state left the domain or a node failed, 2 for a bad option (one line, before any node starts),
+130 on Ctrl-C (the bag is closed and the steps run so far summarised).
+"""
+
+import argparse
+import os
+import sys
+
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl.control import CONTROLLERS
+from tsr_koopman_ctrl.control.registry import DEFAULT_LAW
+from tsr_koopman_ctrl.control.settings import parse_value
+from tsr_koopman_ctrl.deployment import (Deployment, DeploymentError, Interrupted,
+                                         settings_class, summary_table)
+from tsr_koopman_ctrl.evaluation.plots import plot_deployments
+
+
+def parse_args(argv):
+    parser = argparse.ArgumentParser(prog='deploy', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--law', default=DEFAULT_LAW, choices=sorted(CONTROLLERS),
+                        help=f'the control law (default {DEFAULT_LAW})')
+    parser.add_argument('--model', help='model directory or shipped model name for the laws '
+                        'that have a model (default: their `model` setting)')
+    parser.add_argument('--preset', help="a settings preset ('untuned', 'tuned_ratio', "
+                        "'tuned_cross' under the installed config/, or a parameter file); "
+                        '--set applies on top')
+    parser.add_argument('--set', action='append', default=[], metavar='SECTION.SETTING=VALUE',
+                        help='a setting of the law (koopman_mpc.horizon=8), the observer '
+                        '(observer.disturbance=none: the bare law) or the excitation '
+                        '(excitation.kind=prbs); repeatable; sequences as a,b,c')
+    parser.add_argument('--plant', default='nominal',
+                        help='plant variant: a name under tsr_sim/config/plants (actuator_weak, '
+                        'actuator_strong, heavy_robot, out_of_plane, eccentric_orbit, '
+                        'noisy_sensors) or a YAML file of plant parameters')
+    parser.add_argument('--steps', type=cli.STEPS, default=2000,
+                        help='simulation steps of h = 0.01 tau (paper: 2000)')
+    parser.add_argument('--x0', type=float, nargs=4, default=dynamics.PAPER_INITIAL_STATE,
+                        metavar=('THETA', 'THETA_RATE', 'L_MINUS_1', 'L_RATE'),
+                        help='dimensionless initial state (paper: 0 0 -0.99 0.5)')
+    parser.add_argument('--out', default='out', type=cli.output_dir,
+                        help='directory for the plot, the summary and the node logs')
+    parser.add_argument('--bags', default='bags', type=cli.output_dir,
+                        help='directory the bag is written in')
+    parser.add_argument('--namespace', default=None, help='ROS namespace of the three nodes')
+    parser.add_argument('--domain', type=cli.DOMAIN_ID, default=None,
+                        help="ROS_DOMAIN_ID (default: a random one in 1..101, not the "
+                             "environment's ROS_DOMAIN_ID)")
+    parser.add_argument('--timeout', type=cli.number(above=0), default=900.0,
+                        help='wall seconds before the run is abandoned')
+    args = parser.parse_args(argv)
+    if os.path.abspath(args.out) == os.path.abspath(args.bags):
+        parser.error('--out and --bags must differ: a bag directory holds only the bag')
+    try:
+        settings = parsed_settings(args.set)
+        args.deployment = Deployment(
+            args.law, settings, model=args.model, preset=args.preset, plant=args.plant,
+            x0=args.x0, steps=args.steps, namespace=args.namespace, domain=args.domain,
+            bags=args.bags, timeout=args.timeout)
+    except ValueError as error:
+        parser.error(str(error))
+    deployment = args.deployment
+    deployment.logs = os.path.join(args.out, deployment.name)
+    return args
+
+
+def parsed_settings(assignments):
+    """{section: {setting: value}} from --set SECTION.SETTING=VALUE."""
+    settings = {}
+    for assignment in assignments:
+        key, sep, text = assignment.partition('=')
+        section, dot, name = key.partition('.')
+        if not (sep and dot):
+            raise ValueError(f'--set takes SECTION.SETTING=VALUE, got {assignment!r}')
+        settings.setdefault(section, {})[name] = parse_value(settings_class(section), name,
+                                                             text)
+    return settings
+
+
+def report(result, directory):
+    """The plot and the summary table (summary.md, summary.json) of a run, printed too."""
+    import json
+    os.makedirs(directory, exist_ok=True)
+    loop = result.loop
+    plot_deployments({result.figures['controller']: (loop.tau, loop.x, loop.u[:-1])},
+                     os.path.join(directory, 'deployment.png'),
+                     title=f'TSR deployment over DDS: {result.figures["controller"]}')
+    table = summary_table([result.figures])
+    with open(os.path.join(directory, 'summary.md'), 'w') as f:
+        f.write(table + '\n')
+    with open(os.path.join(directory, 'summary.json'), 'w') as f:
+        json.dump([result.figures], f, indent=2)
+    print(f'[deploy] bag {result.bag}: {loop.report.summary()}')
+    print(table)
+    print(f'[deploy] plot and summary in {directory}/', flush=True)
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    deployment = args.deployment
+    try:
+        result = deployment.run()
+    except Interrupted as stopped:
+        report(stopped.result, deployment.logs)
+        print(f'[deploy] {stopped}', file=sys.stderr)
+        return cli.INTERRUPTED_STATUS
+    except (ValueError, DeploymentError, FileNotFoundError) as error:
+        print(f'[deploy] failed: {error}', file=sys.stderr)
+        return 1
+    report(result, deployment.logs)
+    if result.halted:
+        print(f'[deploy] the state left the model domain at tau '
+              f'{result.figures["halt_tau"]:.2f}', file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

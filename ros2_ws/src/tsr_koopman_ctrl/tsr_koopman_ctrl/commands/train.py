@@ -1,0 +1,189 @@
+"""Train a deep Koopman model: ``python -m tsr_koopman_ctrl.commands.train --out models/NAME``.
+
+Data: sampled with the paper's settings (``--trajectories``, ``--data-seed``) and/or read from
+dataset files (``--data FILE``, repeatable). A validation split is held out of training; a
+separate test set (another seed, never trained on) gives the metrics stored with the model.
+Each epoch prints the loss terms and the validation 30-step error; the best epoch is the saved
+model; ``<out>/checkpoint.pt`` lets ``--resume`` carry on after an interruption.
+
+``--init DIR`` fine-tunes a model (its weights, normalisation and config; the flags given
+override the config). ``--structure block`` trains `learning.block_koopman.BlockKoopman`, whose
+observables are stable by construction (what koopman_lqr needs; models/README.md,
+koopman_block); the file it writes is an ordinary model file.
+"""
+
+import argparse
+import dataclasses
+import os
+import sys
+import time
+
+import torch
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.learning import dataset as datasets
+from tsr_koopman_ctrl.learning.trainer import CHECKPOINT, save_model, Trainer
+from tsr_koopman_ctrl.model import model_file, shipped
+from tsr_koopman_ctrl.commands import cli
+
+
+#: Extra sampled data beyond the paper's (not in it): the flag giving the count, the seed offset
+#: from --data-seed, the box of initial states, further sampling settings and what the progress
+#: line calls them.
+EXTRA_BOXES = (
+    ('equilibrium_trajectories', 1, datasets.EQUILIBRIUM_BOX_LOW, datasets.EQUILIBRIUM_BOX_HIGH,
+     {}, 'trajectories near the equilibrium'),
+    ('retrieval_trajectories', 2, datasets.RETRIEVAL_BOX_LOW, datasets.RETRIEVAL_BOX_HIGH, {},
+     'retrieval trajectories'),
+    ('held_tension_trajectories', 3, dynamics.TABLE1_STATE_LOW, dynamics.TABLE1_STATE_HIGH,
+     datasets.HELD_TENSIONS, 'held-tension trajectories'))
+
+
+def load_data(args):
+    parts = [datasets.load(path) for path in args.data]
+    for flag, seed_offset, low, high, settings, label in EXTRA_BOXES:
+        count = getattr(args, flag)
+        if count > 0:
+            extra, dropped = datasets.sample(datasets.SamplingConfig(
+                trajectories=count, seed=args.data_seed + seed_offset,
+                state_low=tuple(float(v) for v in low), state_high=tuple(float(v) for v in high),
+                **settings))
+            print(f'sampled {len(extra)} {label} ({dropped} dropped)', flush=True)
+            parts.append(extra)
+    if args.trajectories > 0:
+        sampled, dropped = datasets.sample(datasets.SamplingConfig(
+            trajectories=args.trajectories, seed=args.data_seed))
+        print(f'sampled {len(sampled)} trajectories ({dropped} runaways dropped)', flush=True)
+        parts.append(sampled)
+    if not parts:
+        raise ValueError('no training data: give --trajectories > 0 or --data FILE')
+    return datasets.concatenate(parts)
+
+
+def test_set(trajectories, seed):
+    data, _ = datasets.sample(datasets.SamplingConfig(trajectories=trajectories, seed=seed))
+    return data
+
+
+def config_from_args(args, base=None):
+    """The defaults (or `base`, an init's config) with the flags given."""
+    overrides = {'epochs': args.epochs, 'weight_equilibrium': args.weight_equilibrium,
+                 'weight_one_step': args.weight_one_step,
+                 'anchor_equilibrium': args.anchor_equilibrium or None,
+                 'lift_dim': args.lift_dim, 'seed': args.seed, 'batch_size': args.batch_size,
+                 'learning_rate': args.learning_rate}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if base is not None:
+        return dataclasses.replace(base, **overrides)
+    return model_file.KoopmanConfig(**overrides)
+
+
+def structure_from_args(args):
+    """None (the dense model) or the BlockStructure the flags ask for."""
+    if args.structure == 'dense':
+        return None
+    from tsr_koopman_ctrl.learning.block_koopman import BlockStructure
+    return BlockStructure(real_modes=args.real_modes, radius=args.radius, margin=args.margin,
+                          flat=not args.no_flat, observable_input=args.observable_input)
+
+
+def parser():
+    p = argparse.ArgumentParser(prog='train', description=__doc__.split('\n\n')[0])
+    p.add_argument('--out', required=True, type=cli.model_dir, help='model directory to write')
+    cli.add_overwrite(p)
+    p.add_argument('--data', action='append', default=[], help='dataset file (repeatable)')
+    p.add_argument('--trajectories', type=int, default=40_000,
+                   help='trajectories to sample with the paper settings (0: none)')
+    p.add_argument('--equilibrium-trajectories', type=int, default=0,
+                   help='extra trajectories from a box around x = 0 (not in the paper)')
+    p.add_argument('--retrieval-trajectories', type=int, default=0,
+                   help="extra trajectories with the tether reeled in, l' < 0 (not in the "
+                   'paper)')
+    p.add_argument('--held-tension-trajectories', type=int, default=0,
+                   help='extra trajectories from the Table-1 box with tensions held for 10 '
+                   'steps, two in three at 0 or 5 (not in the paper)')
+    p.add_argument('--weight-equilibrium', type=float,
+                   help='weight of the equilibrium drift loss (not in the paper; default 0)')
+    p.add_argument('--weight-one-step', type=float,
+                   help='weight of the one-step error from every measured state (not in the '
+                   'paper; default 0)')
+    p.add_argument('--anchor-equilibrium', action='store_true',
+                   help='make x = 0, u = 3 an exact fixed point of the lifted model (not in the '
+                   'paper)')
+    p.add_argument('--data-seed', type=cli.SEED, default=0)
+    p.add_argument('--test-trajectories', type=cli.integer(1), default=5000)
+    p.add_argument('--test-seed', type=cli.SEED, default=datasets.TEST_SEED)
+    p.add_argument('--epochs', type=cli.integer(1))
+    p.add_argument('--lift-dim', type=int, help='K, the number of learned observables')
+    p.add_argument('--batch-size', type=int)
+    p.add_argument('--learning-rate', type=cli.number(above=0))
+    p.add_argument('--seed', type=cli.SEED)
+    p.add_argument('--device', type=cli.torch_device,
+                   help='torch device (default: cuda if present, else cpu)')
+    p.add_argument('--threads', type=cli.integer(1), help='torch CPU threads')
+    p.add_argument('--resume', action='store_true', help='continue from <out>/checkpoint.pt')
+    p.add_argument('--init', help='model directory to fine-tune (its config, with the flags '
+                   'given)')
+    p.add_argument('--structure', choices=('dense', 'block'), default='dense',
+                   help="lifted A: 'dense' (the paper's) or 'block' (observables stable by "
+                   'construction; learning/block_koopman.py)')
+    p.add_argument('--real-modes', type=int, default=12,
+                   help='block, new model: real observable eigenvalues (the rest in pairs)')
+    p.add_argument('--radius', type=float, default=1.0,
+                   help='block: every observable eigenvalue inside |z| < radius')
+    p.add_argument('--margin', type=float, default=0.995,
+                   help='block, --init: observable eigenvalues beyond margin * radius are '
+                   'pulled in to there')
+    p.add_argument('--no-flat', action='store_true',
+                   help='block: observables Phi(x) - Phi(0), not flat to first order at x = 0')
+    p.add_argument('--observable-input', action='store_true',
+                   help='block: the input enters the observables directly (B[n:] learned)')
+    p.add_argument('--quiet', action='store_true')
+    return p
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        init, base = None, None
+        if args.init:       # a directory or a shipped model's name, as retrain takes it
+            init, base, _ = model_file.load(shipped.resolve(args.init))
+        config = config_from_args(args, base)
+        structure = structure_from_args(args)
+        # --resume continues the run in --out, finished or not (README: with more epochs).
+        model_file.check_free(args.out, args.overwrite or args.resume)
+        if args.resume and not os.path.exists(os.path.join(args.out, CHECKPOINT)):
+            # Said before the data is sampled (a minute), as Trainer.restore would after.
+            raise ValueError(f'cannot resume: no {os.path.join(args.out, CHECKPOINT)}')
+        data = load_data(args)
+        test_data = test_set(args.test_trajectories, args.test_seed)
+        trainer = Trainer(config, args.out, args.device, progress=not args.quiet,
+                          structure=structure)
+        start = time.perf_counter()
+        model = trainer.fit(data, resume=args.resume, init=init)
+        seconds = time.perf_counter() - start
+    except ValueError as error:
+        print(f'train: {error}', file=sys.stderr)
+        return 2
+    except RuntimeError as error:     # torch: an init whose shapes the config does not fit
+        print(f'train: cannot start from --init {args.init}: '
+              f'{str(error).splitlines()[0]}', file=sys.stderr)
+        return 2
+    given = sys.argv[1:] if argv is None else argv
+    command = 'python -m tsr_koopman_ctrl.commands.train ' + ' '.join(given)
+    extra = {}
+    if args.init:
+        extra['init'] = args.init
+    metadata = save_model(args.out, model, config, trainer, data, test_data, seconds, command,
+                          extra)
+    metrics = metadata['metrics']
+    print(f"saved {args.out}: best epoch {trainer.best['epoch']}, test 30-step summed MSE "
+          f"{metrics['test']['summed_mse']:.4g}, controllability rank "
+          f"{metrics['controllability_rank']}/{config.lifted_dim}, {seconds:.0f} s")
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,290 @@
+"""A deployment over DDS from Python: the simulator, the controller and the recorder as three
+processes, one run, its result read back from the bag.
+
+    from tsr_koopman_ctrl.deployment import Deployment
+    run = Deployment('koopman_mpc', steps=2000).run()
+    run.figures['settle_tau'], run.figures['frontier_ratio'], run.loop.x, run.bag
+
+Every figure of a run comes from its bag (`bag.read_loop`, `evaluation.run_figures`), never
+from the processes' memory or logs. The nodes start from their installed executables (as
+`ros2 run` finds them), on a DDS domain of their own, all on the simulator's clock: the bag
+holds one time base, and every step from 0 (the simulator starts once the controller and the
+recorder read what it publishes, matched at the DDS level). `deploy` is the command on top;
+`tsr_koopman_ctrl.testing` starts a loop for integration tests with the same class.
+"""
+
+import dataclasses
+import datetime
+import os
+import tempfile
+import time
+
+import numpy as np
+from tsr_sim import dynamics
+from tsr_sim.plant import plant_parameters
+
+from tsr_koopman_ctrl.bag import read_loop
+from tsr_koopman_ctrl.control.registry import (CONTROLLERS, DEFAULT_LAW, law_class,
+                                               NODE_SECTIONS, preset)
+from tsr_koopman_ctrl.control.settings import build
+from tsr_koopman_ctrl.evaluation import PAPER_START, run_figures
+from tsr_koopman_ctrl.launcher import NodeProcess, random_domain_id
+from tsr_koopman_ctrl.model import LiftedModel
+
+
+class DeploymentError(RuntimeError):
+    """A node failed, or the run did not finish in time; the message says which, with the
+    last lines of its log."""
+
+
+class Interrupted(Exception):
+    """A deployment stopped by Ctrl-C: its nodes are stopped and its bag is closed, holding the
+    steps run so far (`result`, read from it). Callers keep what finished and stop (a loop or
+    a comparison must not go on with a cut-short run)."""
+
+    def __init__(self, result):
+        super().__init__(f'interrupted: {result.bag} holds the steps run so far')
+        self.result = result
+
+
+@dataclasses.dataclass
+class RunResult:
+    """One deployment as its bag tells it."""
+
+    bag: str
+    loop: object           # bag.RecordedLoop
+    figures: dict          # run_figures, the compute times, fallbacks and clamps, the run's setup
+
+    @property
+    def halted(self):
+        return bool(self.figures['halted'])
+
+
+def settings_class(section):
+    """The settings class of a settings section: a law's, the observer's or the excitation's."""
+    return NODE_SECTIONS.get(section) or law_class(section).Settings
+
+
+def merged_settings(law, settings=None, model=None, preset_name=None):
+    """{section: {setting: value}} a deployment gives the controller: the preset's (a name or a
+    parameter file), then `settings` on top, then `model` for every law that has a model;
+    checked here, so a typo fails before any process starts (ValueError, one line)."""
+    merged = {}
+    for section, values in (preset(preset_name, NODE_SECTIONS) if preset_name else {}).items():
+        merged[section] = dict(values)
+    for section, values in (settings or {}).items():
+        settings_class(section)        # an unknown section is one line
+        merged.setdefault(section, {}).update(values)
+    if model is not None:
+        path = os.path.abspath(model) if os.path.isdir(model) else model
+        with_model = [name for name, cls in CONTROLLERS.items()
+                      if 'model' in cls.Settings.__dataclass_fields__]
+        if law not in with_model:
+            raise ValueError(f'--model: {law} uses no model')
+        for name in with_model:
+            merged.setdefault(name, {})['model'] = path
+    for section, values in merged.items():
+        build(settings_class(section), None, values)    # names, types, ranges and choices
+    return merged
+
+
+class Deployment:
+    """One closed-loop deployment over DDS (module docstring).
+
+    law: a registry name (`control.CONTROLLERS`); settings: {section: {setting: value}} for the
+    law, 'observer' or 'excitation'; model: a model directory or shipped name for the laws that
+    have one; preset: a settings preset ('tuned_ratio', or a parameter file); plant: a plant
+    variant's name, a plant file, or a mapping of plant parameters; x0: the dimensionless start;
+    steps: lockstep steps of h = 0.01 tau; namespace: the nodes' ROS namespace; domain: the
+    ROS_DOMAIN_ID (default: a random free one); bags: where the bag goes; logs: where the node
+    logs go (default: a new temporary directory); name: the bag's name; timeout: wall seconds
+    before the run is abandoned; progress: the simulator's progress lines on this console.
+    Bad arguments are one ValueError line, raised here, before any process starts.
+    """
+
+    def __init__(self, law=DEFAULT_LAW, settings=None, *, model=None, preset=None,
+                 plant='nominal', x0=PAPER_START, steps=2000, namespace=None, domain=None,
+                 bags='bags', logs=None, name=None, timeout=900.0, progress=True):
+        law_class(law)
+        self.law = law
+        self.settings = merged_settings(law, settings, model, preset)
+        defaults = law_class(law).Settings()
+        if hasattr(defaults, 'model'):     # a bad model: one line now, not a failed node later
+            LiftedModel.load(self.settings.get(law, {}).get('model', defaults.model))
+        self.plant_name = plant if isinstance(plant, str) else 'custom'
+        self.plant = dict(plant) if not isinstance(plant, str) else plant_parameters(plant)
+        overridden = sorted({'initial_state', 'max_steps'} & set(self.plant))
+        if overridden:
+            raise ValueError(f'plant {self.plant_name}: {", ".join(overridden)} would be '
+                             'overridden by the deployment (give x0 and steps instead)')
+        self.x0 = [float(v) for v in x0]
+        if len(self.x0) != dynamics.PLANAR_DIM or not dynamics.in_domain(np.array(self.x0)):
+            raise ValueError(f'x0 {self.x0} is outside the model domain (4 finite values, '
+                             'l - 1 > -1)')
+        if int(steps) < 1:
+            raise ValueError(f'steps must be >= 1, got {steps}')
+        self.steps = int(steps)
+        self.namespace = checked_namespace(namespace)
+        self.domain = domain if domain is not None else random_domain_id()
+        self.name = name or (f'deploy_{law}_'
+                             + datetime.datetime.now(datetime.timezone.utc).strftime(
+                                 '%Y%m%d_%H%M%S'))
+        self.bags = bags
+        self.bag = os.path.join(bags, self.name)
+        self.logs = logs or tempfile.mkdtemp(prefix=f'{self.name}-logs-')
+        self.timeout = float(timeout)
+        self.progress = progress
+        self.processes = []
+
+    def node_parameters(self):
+        """{node: parameters} of the three processes (`--params-file` of each)."""
+        # One time base: every node on the simulator's clock, so the bag's log times and every
+        # header stamp are sim time. Nothing is lost at the start: the simulator publishes its
+        # first state once the controller and the recorder read it (DDS-matched), the
+        # controller commands once the simulator and the recorder read its commands and
+        # statuses, and the recorder subscribes at the first /clock, before any state.
+        law_settings = {section: values for section, values in self.settings.items()
+                        if section in (self.law, *NODE_SECTIONS)}
+        return {
+            'tsr_recorder': {'output_dir': self.bags, 'bag_name': self.name,
+                             'use_sim_time': True},
+            'tsr_controller': {'law': self.law, 'wait_for_subscribers': 2,
+                               'wait_for_status_subscribers': 1, 'use_sim_time': True,
+                               **law_settings},
+            'tsr_sim': {**self.plant, 'mode': 'lockstep', 'initial_state': self.x0,
+                        'max_steps': self.steps, 'exit_on_finish': True,
+                        'wait_for_subscribers': 2, 'progress_every': 100,
+                        'use_sim_time': True}}
+
+    def start(self):
+        """Start the recorder, the controller and the simulator (in that order)."""
+        os.makedirs(self.logs, exist_ok=True)
+        params = self.node_parameters()
+        for package, exe, node in (('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder'),
+                                   ('tsr_koopman_ctrl', 'controller_node', 'tsr_controller'),
+                                   ('tsr_sim', 'sim_node', 'tsr_sim')):
+            console = node == 'tsr_sim' and self.progress
+            self.processes.append(NodeProcess(
+                package, exe, node, params[node], domain_id=self.domain,
+                log_path=None if console else os.path.join(self.logs, f'{node}.log'),
+                namespace=self.namespace))
+        return self
+
+    def wait(self):
+        """Until the simulator finishes; DeploymentError, with the log's tail, if another node
+        dies first or time runs out."""
+        recorder, control, sim = self.processes
+        watch(sim, (control, recorder), self.timeout)
+
+    def stop(self):
+        """Stop every node (the simulator first, the recorder last: its bag closes)."""
+        for process in reversed(self.processes):
+            process.stop()
+
+    def run(self):
+        """Start, wait for the end of the run, stop; the RunResult read from the bag. On Ctrl-C
+        the nodes are stopped and the bag closed first, then Interrupted is raised."""
+        print(f'[deploy] {self.law} from x0 = {self.x0} for {self.steps} steps (tau '
+              f'{self.steps * dynamics.PAPER_STEP:g}), plant {self.plant_name}, on '
+              f'ROS_DOMAIN_ID {self.domain}', flush=True)
+        try:
+            self.start()
+            self.wait()
+        except KeyboardInterrupt:
+            print('[deploy] interrupted: closing the bag', flush=True)
+            self.stop()
+            raise Interrupted(self.result())
+        finally:
+            self.stop()
+        return self.result()
+
+    def result(self):
+        """The run as its bag holds it (the bag must be closed)."""
+        return read_result(self.bag, self.law, self.x0, self.steps, self.namespace)
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+def watch(sim, others, timeout):
+    """Wait for the simulator's process to end; DeploymentError, with the log's tail, if one of
+    the `others` dies first, time runs out, or the simulator fails."""
+    deadline = time.monotonic() + timeout
+    while sim.running():
+        dead = [p for p in others if not p.running()]
+        if dead:
+            tails = '\n'.join(f'--- {p.name} exited with {p.process.returncode}; last lines '
+                              f'of {p.log_path}:\n{p.log_tail().rstrip()}' for p in dead)
+            raise DeploymentError(f'{", ".join(p.name for p in dead)} exited early\n{tails}')
+        if time.monotonic() > deadline:
+            raise DeploymentError(f'the deployment did not finish within {timeout} s')
+        time.sleep(0.1)
+    if sim.process.returncode != 0:
+        raise DeploymentError(f'{sim.name} exited with {sim.process.returncode}')
+
+
+def read_result(bag, law, x0, planned_steps, namespace=None):
+    """A RunResult from a bag: the figures of the run (`run_figures`), the controller's compute
+    times and counters, all read back from the bag."""
+    loop = read_loop(bag, namespace=namespace)
+    x0 = [float(v) for v in x0]
+    figures = run_figures(loop.tau, loop.x, loop.u[:-1], start=x0, halted=loop.halted)
+    compute_us = loop.compute_time * 1e6
+    status = loop.controller_status
+    figures.update(
+        controller=law, x0=x0, bag=bag, steps=int(loop.step[-1]), planned_steps=planned_steps,
+        halt_tau=loop.halt_tau,
+        compute_median_us=float(np.median(compute_us)) if compute_us.size else None,
+        compute_p99_us=float(np.percentile(compute_us, 99)) if compute_us.size else None,
+        solver_fallbacks=status.solver_fallbacks if status else None,
+        clamped=status.clamped if status else None)
+    return RunResult(bag=bag, loop=loop, figures=figures)
+
+
+def checked_namespace(namespace):
+    """An absolute ROS namespace, as `ros2 launch` pushes one (ValueError, one line, if it is
+    not a valid one); None stays None."""
+    if namespace is None:
+        return None
+    from rclpy.exceptions import NameValidationException
+    from rclpy.validate_namespace import validate_namespace
+    namespace = namespace if namespace.startswith('/') else '/' + namespace
+    try:
+        validate_namespace(namespace)
+    except NameValidationException as error:
+        # rclpy's message ends its first line with ':' and the name on the next
+        reason = ' '.join(line.strip() for line in str(error).splitlines()[:2])
+        raise ValueError(f'--namespace {namespace!r}: {reason}') from None
+    return namespace
+
+
+def settle_cell(row):
+    if row['settle_tau'] is not None:
+        return f"{row['settle_tau']:.2f}"
+    if row['halted']:
+        return f"left the domain at tau {row['halt_tau']:.2f}"
+    if row['steps'] < row['planned_steps']:
+        return f"stopped at step {row['steps']}"
+    return 'not reached'
+
+
+def summary_table(rows):
+    """The deployment table (markdown), one row per run's figures."""
+    def fmt(v, digits=2):
+        return '-' if v is None else f'{v:.{digits}f}'
+
+    lines = ['| law | x0 | settle tau (1% zone) | final l | theta range [rad] | '
+             'l overshoot | max u | integral u dtau | compute median / p99 [us] | '
+             'frontier tau | ratio |', '|---|---|---|---|---|---|---|---|---|---|---|']
+    for r in rows:
+        final_l = r['final_state'][dynamics.LENGTH_OFFSET] + 1.0
+        lines.append(f"| {r['controller']} | {r['x0']} | {settle_cell(r)} | {final_l:.3f} | "
+                     f"[{r['theta_min']:.3f}, {r['theta_max']:.3f}] | "
+                     f"{r['length_overshoot']:.4f} | {r['tension_max']:.3f} | "
+                     f"{r['tension_integral']:.2f} | {fmt(r['compute_median_us'], 0)} / "
+                     f"{fmt(r['compute_p99_us'], 0)} | {fmt(r['frontier_tau'], 1)} | "
+                     f"{fmt(r['frontier_ratio'])} |")
+    return '\n'.join(lines)

@@ -1,0 +1,175 @@
+"""pytest fixtures for rclpy integration tests against the nodes, for your own test suites.
+
+    # conftest.py
+    pytest_plugins = ['tsr_koopman_ctrl.testing']
+
+    # test_my_controller.py
+    def test_the_loop_reaches_step_100(tsr_loop):
+        loop = tsr_loop(law='linear_lqr', steps=300)     # sim, controller, recorder
+        loop.ros.spin_until(lambda: loop.status and loop.status.step >= 100, timeout=60)
+        run = loop.finish()                             # waits for the end, reads the bag
+        assert run.figures['settle_tau'] is not None
+
+Fixtures (each test gets a DDS domain of its own, and everything it starts is stopped at
+teardown, also when the test fails):
+  ros_domain    the ROS_DOMAIN_ID of the test session (ROS_DOMAIN_ID when set, else one of
+                1..101 from the process id)
+  ros           a `RosClient`: an rclpy node in this process on that domain (spin_until,
+                spin_for, call a service, get and set a node's parameters)
+  start_node    start_node(package, executable, name, params, namespace=...) -> NodeProcess:
+                an installed node as its own process, its log in the test's tmp_path
+  tsr_loop      tsr_loop(law=..., steps=..., namespace=..., **Deployment options) -> a
+                running loop (`deployment.Deployment`) whose simulator status the `ros` client
+                follows; .finish() waits for the end and returns the RunResult read from the
+                bag
+
+Tests that use them start processes: mark them (this project's own use `@pytest.mark.ros`).
+"""
+
+import os
+import time
+
+import pytest
+
+from tsr_koopman_ctrl.launcher import FREE_DOMAIN_IDS, NodeProcess
+
+
+class RosClient:
+    """An rclpy node in the test process, on the test's domain (its own rclpy context)."""
+
+    def __init__(self, domain):
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        self.rclpy = rclpy
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = rclpy.create_node('test_client', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, predicate, timeout=10.0, what='condition'):
+        """Spin until `predicate()` is true; TimeoutError naming `what` after `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f'timed out after {timeout} s waiting for {what}')
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def spin_for(self, seconds, until=None):
+        """Spin for `seconds`, or less if `until()` becomes true."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline and not (until and until()):
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def call(self, service_type, name, request, timeout=10.0):
+        """Call a service and wait for its response."""
+        client = self.node.create_client(service_type, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                raise TimeoutError(f'no service {name} after {timeout} s')
+            future = client.call_async(request)
+            self.spin_until(future.done, timeout, what=f'the response of {name}')
+            return future.result()
+        finally:
+            self.node.destroy_client(client)
+
+    def set_parameters(self, node_name, values, timeout=10.0):
+        """Set parameters of a running node: [(successful, reason)] in the order given."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+        request = SetParameters.Request(parameters=[
+            Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
+        response = self.call(SetParameters, f'{node_name}/set_parameters', request, timeout)
+        return [(r.successful, r.reason) for r in response.results]
+
+    def get_parameters(self, node_name, names, timeout=10.0):
+        """{name: value} of a running node's parameters."""
+        from rcl_interfaces.srv import GetParameters
+        from rclpy.parameter import parameter_value_to_python
+        response = self.call(GetParameters, f'{node_name}/get_parameters',
+                             GetParameters.Request(names=list(names)), timeout)
+        return {name: parameter_value_to_python(value)
+                for name, value in zip(names, response.values)}
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+
+
+class RunningLoop:
+    """A deployment started by the `tsr_loop` fixture: `status` is the simulator's last
+    tsr_msgs/SimStatus seen by `ros`; `finish()` waits for the run and reads its bag."""
+
+    def __init__(self, deployment, ros):
+        from tsr_msgs.msg import SimStatus
+        from tsr_sim import ros_io, wire
+        self.deployment, self.ros, self.status = deployment, ros, None
+        ros.node.create_subscription(
+            SimStatus, wire.resolve(wire.SIM_STATUS_TOPIC, deployment.namespace or '/'),
+            lambda msg: setattr(self, 'status', msg), ros_io.LATCHED_QOS)
+
+    def finish(self):
+        self.deployment.wait()
+        self.deployment.stop()
+        return self.deployment.result()
+
+
+@pytest.fixture(scope='session')
+def ros_domain():
+    """A DDS domain of the test session's own: ROS_DOMAIN_ID when the caller set one, else one
+    of the launcher's free domains (1..101) from the process id, so parallel runs and other ROS
+    graphs do not interfere."""
+    for name in ('ROS_DOMAIN_ID', 'TSR_TEST_DOMAIN'):
+        if os.environ.get(name):
+            return int(os.environ[name])
+    return FREE_DOMAIN_IDS[os.getpid() % len(FREE_DOMAIN_IDS)]
+
+
+@pytest.fixture
+def ros(ros_domain):
+    client = RosClient(ros_domain)
+    yield client
+    client.close()
+
+
+@pytest.fixture
+def start_node(ros_domain, tmp_path):
+    """Factory: start_node(package, executable, name, params, ...) -> NodeProcess; all stopped
+    at teardown. Logs go to tmp_path/<name>.log."""
+    started = []
+
+    def start(package, exe, name, params=None, extra_args=(), namespace=None, cwd=None):
+        process = NodeProcess(package, exe, name, params, domain_id=ros_domain,
+                              log_path=str(tmp_path / f'{name}.log'), extra_args=extra_args,
+                              namespace=namespace, cwd=cwd)
+        started.append(process)
+        return process
+
+    yield start
+    for process in started:
+        process.stop()
+
+
+@pytest.fixture
+def tsr_loop(ros_domain, ros, tmp_path):
+    """Factory: tsr_loop(law=..., steps=..., **options) -> RunningLoop, the three nodes
+    started (`deployment.Deployment` options; bags and logs in tmp_path, a namespace of the
+    test's own by default); stopped at teardown."""
+    from tsr_koopman_ctrl.deployment import Deployment
+    loops = []
+
+    def start(law='linear_lqr', steps=300, namespace=None, **options):
+        namespace = namespace or f'/test{len(loops)}'
+        deployment = Deployment(law, steps=steps, namespace=namespace, domain=ros_domain,
+                                bags=str(tmp_path / 'bags'), logs=str(tmp_path / 'logs'),
+                                progress=False, **options)
+        loops.append(deployment)
+        running = RunningLoop(deployment, ros)
+        deployment.start()
+        return running
+
+    yield start
+    for deployment in loops:
+        deployment.stop()

@@ -1,0 +1,228 @@
+"""The tuning command: the law's own settings first, a study that resumes, held-out scoring."""
+
+import json
+
+import pytest
+
+from tsr_koopman_ctrl.control import LinearisedLqr
+from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS
+from lab import tune
+
+
+def test_a_study_resumes_and_reports_on_held_out_starts(tmp_path):
+    args = ['--law', 'linear_lqr', '--steps', '1000', '--out', str(tmp_path)]
+    assert tune.main([*args, '--trials', '2']) == 0
+    assert tune.main([*args, '--trials', '4', '--jobs', '2']) == 0     # resumes the journal
+    summary = json.loads((tmp_path / 'linear_lqr_swing0.8.json').read_text())
+    assert summary['trials'] >= 4
+    # The first trial is the law's own settings, so the best is never worse than the default.
+    default = summary['results']['tuning_default']['score']
+    assert summary['best_value'] <= default
+    assert len(summary['results']['held_out_tuned']['runs']) == 5
+    # The report's figures are the closed loop's own.
+    first = closed_loop_figures(LinearisedLqr(), COMPARISON_STARTS[0], 1000)
+    assert summary['results']['tuning_default']['runs'][0]['settle_tau'] == first['settle_tau']
+
+
+def test_the_laws_own_settings_are_a_trial_with_several_workers(tmp_path):
+    """Two workers on a fresh study: the default is enqueued before either starts (a worker
+    that checked for an empty study itself lost that race to its sibling)."""
+    import optuna
+    args = ['--law', 'linear_lqr', '--steps', '200', '--out', str(tmp_path)]
+    assert tune.main([*args, '--trials', '2', '--jobs', '2']) == 0
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(
+        str(tmp_path / 'linear_lqr_swing0.8.journal')))
+    study = optuna.load_study(study_name='linear_lqr_swing0.8', storage=storage)
+    assert tune.as_params('linear_lqr', {}) in [t.params for t in study.trials]
+
+
+def test_the_search_space_comes_from_the_settings_classes():
+    import optuna
+    trial = optuna.trial.FixedTrial({'q_0': 2.0, 'q_1': 3.0, 'q_2': 4.0, 'q_3': 5.0, 'r': 0.5})
+    assert tune.suggest(trial, 'linear_lqr') == {'q': (2.0, 3.0, 4.0, 5.0), 'r': 0.5}
+    assert set(tune.as_params('koopman_mpc', {})) == {'horizon', 'r', 'q_0', 'q_1', 'q_2',
+                                                      'q_3'}
+    # The state weight's cross terms only when asked (--also), six of them.
+    params = tune.as_params('linear_lqr', {}, also=('q_cross',))
+    assert {f'q_cross_{i}' for i in range(6)} <= set(params)
+    assert all(params[f'q_cross_{i}'] == 0.0 for i in range(6))
+
+
+def test_also_names_a_searchable_setting(tmp_path, capsys):
+    args = ['--law', 'linear_lqr', '--steps', '300', '--out', str(tmp_path), '--trials', '1']
+    assert tune.main([*args, '--also', 'q_cross']) == 0
+    summary = json.loads((tmp_path / 'linear_lqr_with-q_cross_swing0.8.json').read_text())
+    assert len(summary['best_settings']['q_cross']) == 6
+    assert tune.main([*args, '--also', 'horizon']) == 2
+    assert '--also horizon: linear_lqr has no such searchable setting' in \
+        capsys.readouterr().err
+
+
+@pytest.mark.parametrize('settings, expected', [({'r': -1.0}, tune.PENALTY_TAU)])
+def test_a_law_that_cannot_be_built_scores_the_penalty(settings, expected):
+    assert tune.score('linear_lqr', settings, COMPARISON_STARTS[:1], 0.8, 100)[0] == expected
+
+
+def test_the_ratio_objectives_score_the_frontier_ratio_at_each_runs_swing():
+    starts = COMPARISON_STARTS[:2]
+    mean, runs = tune.score('linear_lqr', {}, starts, 0.8, 1000, 'ratio')
+    worst, _ = tune.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio')
+    # Recomputed from the frontier table directly, not from the figures' own ratio.
+    from tsr_koopman_ctrl.evaluation.frontier import frontier_tau
+    ratios = [r['settle_tau'] / frontier_tau(s, r['swing']) for s, r in zip(starts, runs)]
+    assert mean == pytest.approx(sum(ratios) / 2) and worst == pytest.approx(max(ratios))
+    assert worst > mean
+    # A swing bound the runs break scores the ratio penalty, not the settle one.
+    assert tune.score('linear_lqr', {}, starts, 0.1, 1000, 'ratio')[0] == tune.PENALTY_RATIO
+
+
+def test_a_study_keeps_its_objective_and_names_it(tmp_path, capsys):
+    args = ['--law', 'linear_lqr', '--steps', '300', '--out', str(tmp_path), '--trials', '1']
+    assert tune.main([*args, '--objective', 'worst-ratio']) == 0
+    assert (tmp_path / 'linear_lqr_worst-ratio_swing0.8.json').exists()
+    journal = str(tmp_path / 'linear_lqr_worst-ratio_swing0.8.journal')
+    # The same journal and study under another objective: one line, exit 2, no trial run and
+    # the journal as it was (create_study appended a record even for a study it loaded).
+    before = open(journal, 'rb').read()
+    assert tune.main([*args, '--objective', 'settle', '--storage', journal,
+                      '--study', 'linear_lqr_worst-ratio_swing0.8']) == 2
+    assert 'was tuned on --objective worst-ratio, not settle' in capsys.readouterr().err
+    assert open(journal, 'rb').read() == before
+
+
+def test_the_swing_objective_scores_the_largest_swing_of_settled_runs():
+    starts = COMPARISON_STARTS[:2]
+    value, runs = tune.score('linear_lqr', {}, starts, 0.1, 1000, 'swing')
+    assert value == max(r['swing'] for r in runs) and value > 0.1   # the bound plays no part
+    assert tune.score('linear_lqr', {'r': -1.0}, starts, 0.8, 100, 'swing')[0] == \
+        tune.PENALTY_SWING
+    # 30 steps settle nowhere: every start scores the penalty.
+    assert tune.score('linear_lqr', {}, starts, 0.8, 30, 'swing')[0] == tune.PENALTY_SWING
+
+
+def test_the_graded_penalty_grows_with_how_far_a_run_missed():
+    starts = COMPARISON_STARTS[:2]
+    # The same runs, flat and graded: under a 0.1-rad bound both starts swing past it.
+    flat, runs = tune.score('linear_lqr', {}, starts, 0.1, 1000, 'worst-ratio')
+    graded, _ = tune.score('linear_lqr', {}, starts, 0.1, 1000, 'worst-ratio', graded=True)
+    assert flat == tune.PENALTY_RATIO
+    past = max(r['swing'] for r in runs) - 0.1     # every run settled, so no unsettled 1
+    assert all(r['settle_tau'] is not None for r in runs) and past > 0.3
+    assert graded == pytest.approx(tune.PENALTY_RATIO + past)
+    # A looser bound misses by less and scores less; a run within it scores its ratio.
+    looser, _ = tune.score('linear_lqr', {}, starts, 0.3, 1000, 'worst-ratio', graded=True)
+    assert tune.PENALTY_RATIO < looser < graded
+    within, _ = tune.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio', graded=True)
+    assert within == tune.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio')[0] < 2.0
+    # 30 steps settle nowhere (one each), a law that cannot be built scores the cap.
+    assert tune.score('linear_lqr', {}, starts, 0.8, 30, 'settle', graded=True)[0] == \
+        tune.PENALTY_TAU + 1.0
+    assert tune.score('linear_lqr', {'r': -1.0}, starts, 0.8, 30, 'settle', graded=True)[0] == \
+        tune.PENALTY_TAU + tune.MISS_CAP
+
+
+def test_a_study_keeps_its_penalty_and_names_it(tmp_path, capsys):
+    args = ['--law', 'linear_lqr', '--steps', '300', '--out', str(tmp_path), '--trials', '1',
+            '--swing-max', '0.1']
+    assert tune.main([*args, '--penalty', 'graded']) == 0
+    summary = json.loads((tmp_path / 'linear_lqr_graded_swing0.1.json').read_text())
+    assert summary['penalty'] == 'graded' and summary['best_value'] > tune.PENALTY_TAU
+    assert 'the trial that missed least' in capsys.readouterr().out
+    journal = str(tmp_path / 'linear_lqr_graded_swing0.1.journal')
+    assert tune.main([*args, '--storage', journal, '--study', 'linear_lqr_graded_swing0.1']) == 2
+    assert 'was tuned on --penalty graded, not flat' in capsys.readouterr().err
+
+
+def test_swing_starts_tune_on_six_starts_and_the_study_keeps_them(tmp_path, capsys):
+    from tsr_koopman_ctrl.evaluation import frontier_tau, HELD_OUT_STARTS
+    from tsr_koopman_ctrl.evaluation.starts import SWING_TUNING_STARTS
+    # The two extra starts begin with a swing, are no held-out start, and have frontier rows.
+    assert all(start[0] != 0.0 and start[1] != 0.0 for start in SWING_TUNING_STARTS)
+    assert not set(SWING_TUNING_STARTS) & set(HELD_OUT_STARTS + COMPARISON_STARTS)
+    assert all(frontier_tau(start, 0.8) is not None for start in SWING_TUNING_STARTS)
+    args = ['--law', 'linear_lqr', '--steps', '1000', '--out', str(tmp_path), '--trials', '1',
+            '--objective', 'worst-ratio']
+    assert tune.main([*args, '--starts', 'swing']) == 0
+    summary = json.loads(
+        (tmp_path / 'linear_lqr_worst-ratio_swing-starts_swing0.8.json').read_text())
+    assert summary['starts'] == 'swing'
+    assert summary['tuning_starts'] == [list(s) for s in COMPARISON_STARTS + SWING_TUNING_STARTS]
+    runs = summary['results']['tuning_default']['runs']
+    assert len(runs) == 6 and len(summary['results']['held_out_default']['runs']) == 5
+    # The score is the largest ratio over all six, the swing starts' included.
+    extra = [closed_loop_figures(LinearisedLqr(), s, 1000) for s in SWING_TUNING_STARTS]
+    assert [r['settle_tau'] for r in runs[4:]] == [f['settle_tau'] for f in extra]
+    assert summary['best_value'] == max(r['frontier_ratio'] for r in runs)
+    journal = str(tmp_path / 'linear_lqr_worst-ratio_swing-starts_swing0.8.journal')
+    capsys.readouterr()
+    assert tune.main([*args, '--storage', journal,
+                      '--study', 'linear_lqr_worst-ratio_swing-starts_swing0.8']) == 2
+    assert 'was tuned on --starts swing, not comparison' in capsys.readouterr().err
+
+
+def _start_tune(tmp_path, trials=100000):
+    import subprocess
+    import sys
+    return subprocess.Popen(
+        [sys.executable, '-m', 'lab.tune', '--law', 'linear_lqr', '--steps',
+         '200', '--trials', str(trials), '--jobs', '2', '--out', str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def _journal_size_once_trials_run(tmp_path, proc, timeout=60.0):
+    import time
+    journal = tmp_path / 'linear_lqr_swing0.8.journal'
+    deadline = time.monotonic() + timeout
+    while not journal.exists() or journal.stat().st_size < 20000:    # several trials in
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    return journal
+
+
+def test_ctrl_c_lets_the_trials_in_progress_finish_and_says_how_to_resume(tmp_path):
+    """Ctrl-C reaches the command and its workers (one process group). Before: five
+    tracebacks, and the trials in progress stored as FAIL, which counted against --trials."""
+    import collections
+    import os
+    import signal
+
+    import optuna
+    proc = _start_tune(tmp_path)
+    journal = _journal_size_once_trials_run(tmp_path, proc)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert 'Traceback' not in err and 'finishing the trials in progress' in err
+    assert f'tune: interrupted; {journal} keeps the finished trials' in err
+    storage = optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(journal)))
+    study = optuna.load_study(study_name='linear_lqr_swing0.8', storage=storage)
+    states = collections.Counter(t.state.name for t in study.trials)
+    assert set(states) == {'COMPLETE'} and states['COMPLETE'] > 2, states
+
+
+def test_killing_the_command_stops_its_workers(tmp_path):
+    """The workers went on filling the journal, unseen, after their command was killed."""
+    import os
+    import signal
+    import time
+    proc = _start_tune(tmp_path)
+    journal = _journal_size_once_trials_run(tmp_path, proc)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=10)
+    time.sleep(3.0)                      # a 200-step linear_lqr trial takes well under that
+    size = journal.stat().st_size
+    time.sleep(3.0)
+    alive = _group_alive(proc.pid)
+    if alive:                            # leave nothing running, whatever the outcome
+        os.killpg(proc.pid, signal.SIGKILL)
+    assert journal.stat().st_size == size and not alive
+
+
+def _group_alive(group):
+    import os
+    try:
+        os.killpg(group, 0)
+        return True
+    except ProcessLookupError:
+        return False

@@ -1,0 +1,81 @@
+"""The house's floors: no import runs back up a floor, and the product never imports the lab.
+
+Floors, from the ground: the plant core (tsr_sim, ROS-free); the model and the bags; the laws;
+the figures of a run; learning; the ROS glue and the process layer (nodes, the deployment, the
+launcher, tsr_sim's node and ros_io); the commands and the test fixtures; the lab beside it all.
+A module imports from its own floor or below. Read from the source (ast), imports inside
+functions included.
+"""
+
+import ast
+
+import pytest
+
+from conftest import ROOT
+
+SOURCES = {'tsr_sim': ROOT / 'ros2_ws/src/tsr_sim/tsr_sim',
+           'tsr_koopman_ctrl': ROOT / 'ros2_ws/src/tsr_koopman_ctrl/tsr_koopman_ctrl',
+           'lab': ROOT / 'lab'}
+FLOORS = [
+    ('tsr_sim.dynamics', 'tsr_sim.units', 'tsr_sim.plant', 'tsr_sim.variants', 'tsr_sim.wire',
+     'tsr_sim.parameter_file', 'tsr_sim.share', 'tsr_sim'),
+    ('tsr_koopman_ctrl.model', 'tsr_koopman_ctrl.bag'),
+    ('tsr_koopman_ctrl.control',),
+    ('tsr_koopman_ctrl.evaluation',),
+    ('tsr_koopman_ctrl.learning',),
+    ('tsr_koopman_ctrl.nodes', 'tsr_koopman_ctrl.deployment', 'tsr_koopman_ctrl.launcher',
+     'tsr_sim.sim_node', 'tsr_sim.ros_io'),
+    ('tsr_koopman_ctrl.commands', 'tsr_koopman_ctrl.testing', 'tsr_koopman_ctrl'),
+    ('lab',),
+]
+
+
+def floor(module):
+    """The floor of a project module (the longest matching room), or None (not ours)."""
+    best = None
+    for index, rooms in enumerate(FLOORS):
+        for room in rooms:
+            if module == room or module.startswith(room + '.'):
+                if best is None or len(room) > best[1]:
+                    best = (index, len(room))
+    return None if best is None else best[0]
+
+
+def modules():
+    for package, directory in SOURCES.items():
+        for path in sorted(directory.rglob('*.py')):
+            parts = path.relative_to(directory).with_suffix('').parts
+            name = '.'.join((package, *parts))
+            yield (name[:-len('.__init__')] if name.endswith('.__init__') else name), path
+
+
+def imports(path, name):
+    tree = ast.parse(path.read_text())
+    package = name if path.name == '__init__.py' else name.rpartition('.')[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            yield from (alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.rsplit('.', node.level - 1)[0] if node.level > 1 else package
+                yield f'{base}.{node.module}' if node.module else base
+            else:
+                yield node.module
+
+
+@pytest.mark.parametrize('name, path', list(modules()), ids=lambda v: str(v))
+def test_no_import_runs_back_up_a_floor(name, path):
+    own = floor(name)
+    assert own is not None, f'{name} has no floor: add it to FLOORS'
+    upward = [target for target in imports(path, name)
+              if (floor(target) or 0) > own]
+    assert upward == [], f'{name} (floor {own}) imports from above: {upward}'
+
+
+def test_the_laws_never_import_the_figures_and_the_product_never_the_lab():
+    for name, path in modules():
+        targets = set(imports(path, name))
+        if name.startswith('tsr_koopman_ctrl.control'):
+            assert not any(t.startswith('tsr_koopman_ctrl.evaluation') for t in targets), name
+        if not name.startswith('lab'):
+            assert not any(t == 'lab' or t.startswith('lab.') for t in targets), name
