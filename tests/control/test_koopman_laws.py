@@ -136,7 +136,7 @@ def test_mpc_respects_the_tension_bounds(tiny_model):
 def test_ratio_tuned_koopman_mpc_on_the_block_model_deploys_near_the_frontier(x0):
     """The ratio-tuned preset (koopman_block, 30 steps) from the four comparison and the five
     held-out starts: within 1.4x the minimum-time frontier at its own swing (1.27..1.36
-    measured, 2026-11-30; 1.40..1.56 with the preset's earlier koopman_default setting),
+    measured; 1.40..1.56 with the preset's earlier koopman_default setting),
     offset-free as deployed; the frontier comes from the project's own minimum-time solver."""
     law = make_controller('koopman_mpc', **preset('tuned_ratio')['koopman_mpc'])
     figures = closed_loop_figures(law, x0, 1000)
@@ -149,7 +149,7 @@ def test_ratio_tuned_koopman_mpc_on_the_block_model_deploys_near_the_frontier(x0
 def test_cross_tuned_koopman_mpc_deploys_near_the_frontier_ahead_of_the_cross_tuned_lqr(x0):
     """config/tuned_cross.yaml: the state weight's cross terms searched the same way for both
     laws. From the nine starts the Koopman MPC settles within 1.32x the frontier at its own
-    swing (1.25..1.30 measured, 2026-11-30) and before the linearised LQR does."""
+    swing (1.25..1.30 measured) and before the linearised LQR does."""
     settings = preset('tuned_cross')
     mpc = closed_loop_figures(make_controller('koopman_mpc', **settings['koopman_mpc']), x0,
                               1000)
@@ -162,7 +162,7 @@ def test_cross_tuned_koopman_mpc_deploys_near_the_frontier_ahead_of_the_cross_tu
 @pytest.mark.parametrize('variant', ['actuator_weak', 'actuator_strong'])
 def test_cross_tuned_koopman_mpc_settles_with_an_actuator_unlike_its_model(variant):
     """Actuator gain 0.9 or 1.1 and a 0.05-tau lag, offset-free as deployed: the cross-tuned
-    MPC settles from the four comparison starts in 3.72..4.59 tau (2026-11-30; nominal
+    MPC settles from the four comparison starts in 3.72..4.59 tau (nominal
     3.72..4.41), with no fallback."""
     from tsr_sim.plant import plant_parameters
     settings = preset('tuned_cross')['koopman_mpc']

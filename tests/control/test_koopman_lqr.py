@@ -84,7 +84,7 @@ def test_koopman_block_fast_observables_decay_within_0_95_per_step():
 def test_on_koopman_block_fast_the_tuned_presets_settle_near_the_frontier(x0, name, bound):
     """Issue 14's bound for the paper's law is 1.6x. Both presets plan on koopman_block_fast;
     measured 1.25..1.32x cross-tuned, 1.27..1.36x ratio-tuned (diagonal Q; on koopman_block
-    that search reached 1.36..1.77x), 2026-12-01."""
+    that search reached 1.36..1.77x)."""
     settings = preset_settings(name)
     assert settings['model'] == 'koopman_block_fast'
     figures = closed_loop_figures(make_controller('koopman_lqr', **settings), x0, 1500)

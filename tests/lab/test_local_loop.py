@@ -28,8 +28,8 @@ def test_the_linear_lqr_s_local_loop_is_its_continuous_design():
 def test_on_koopman_block_the_cross_tuned_koopman_lqr_had_a_lightly_damped_pair():
     """Why its held-out ratios on koopman_block (1.39..1.77) trailed its tuning ones
     (1.25..1.56): near the target its least damped pair is at zeta ~0.22, which starts with
-    theta0 = 0 barely excite (measured 2026-11-30). On koopman_block_fast (the preset since
-    2026-12-01) the pair is damped like the MPC's and the LQR's (0.58; all above 0.5)."""
+    theta0 = 0 barely excite. On koopman_block_fast (the preset's model) the pair is damped
+    like the MPC's and the LQR's (0.58; all above 0.5)."""
     import json
 
     from conftest import ROOT

@@ -22,7 +22,7 @@ from tsr_koopman_ctrl.learning.trainer import Trainer
 #: takes the mean over the 32 windows at once. Adam divides each gradient element by its own
 #: running magnitude, so an element whose gradient is near zero (the lift's output bias, which
 #: the lifted loss barely sees) turns a rounding difference into a visible step. Measured
-#: 2026-11-30 on this test's data (2 epochs of 5 steps): DDP vs one process 8.5e-5, and one
+#: On this test's data (2 epochs of 5 steps): DDP vs one process 8.5e-5, and one
 #: process against itself with the two halves of every batch swapped (the same maths, another
 #: summation order) 1.3e-4: DDP is at the rounding floor. 5e-4 leaves room for that; rank 0
 #: training alone on its half (what DDP without averaging would give) is 1.8e-2 away, checked.

@@ -174,7 +174,7 @@ def test_republished_identical_states_are_fine(tmp_path):
 def test_the_controller_s_safe_tension_answers_no_step_and_changes_nothing(tmp_path):
     """Safe tensions (step NO_STEP) pair with no state: the windows and the loop read back
     are the commands that answered states, with no warning. Stamped with a state's step, as
-    the controller did before 2026-12-01, one is a second, different command for that step."""
+    an older controller did, one is a second, different command for that step."""
     x, u, _ = loop_data(40)
     safe = dynamics.EQUILIBRIUM_TENSION
     path = write_loop(tmp_path / 'b', x, u,

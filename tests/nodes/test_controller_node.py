@@ -148,7 +148,7 @@ def test_a_repeated_state_gets_its_command_again_without_running_the_law_twice(r
     # state_timeout 0.5 s: until the first state the controller sends safe tensions and their
     # statuses (step NO_STEP, answering no state), which tell this side that both topics have
     # matched both ways. Matched on this side alone was not enough: a status published before
-    # the controller's writer matched was lost (`.ci/run`, 2026-12-01: 1 of 396).
+    # the controller's writer matched was lost (in one `.ci/run`, 1 of 396).
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
                {'law': 'linear_lqr', 'state_timeout': 0.5})
     node = ros.node

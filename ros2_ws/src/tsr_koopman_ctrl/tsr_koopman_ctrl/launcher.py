@@ -51,7 +51,7 @@ def random_domain_id(rng=random):
 #: One BLAS / OpenMP thread for every process a tool starts, unless the caller chose: processes
 #: on this project's few cores each spinning several OpenBLAS threads stall one another. Two
 #: `koopman_nmpc` loops side by side ran 0.93 s a step with numpy's default threads against
-#: 0.18 with one (one alone: 0.17 and 0.15; 2 cores, 2026-12-02).
+#: 0.18 with one (one alone: 0.17 and 0.15; 2 cores).
 ONE_THREAD = {'OMP_NUM_THREADS': '1', 'OPENBLAS_NUM_THREADS': '1', 'MKL_NUM_THREADS': '1'}
 
 

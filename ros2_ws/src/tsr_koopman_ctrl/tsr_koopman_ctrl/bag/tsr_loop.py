@@ -84,9 +84,11 @@ class RecordedLoop:
         return f'run {self.run}: steps {self.step[0]}-{self.step[-1]} ({self.step.size} states)'
 
 
-def _loop_namespace(topics_by_type, namespace):
-    """The namespace of the loop in the bag: given, or the only one recorded."""
-    states = sorted(topics_by_type.get(STATE_TYPE, ()))
+def loop_namespace(state_topics, namespace=None):
+    """The namespace of the loop in a bag whose TsrState topics are `state_topics`: the one
+    given (ValueError if the bag has no loop there), or the only one recorded (ValueError if
+    there are several, or none)."""
+    states = sorted(state_topics)
     if namespace is not None:
         wanted = wire.resolve(wire.STATE_TOPIC, namespace)
         if wanted not in states:
@@ -234,7 +236,7 @@ def read_runs(path, scale=None, namespace=None):
     for index, (msg, decoded) in enumerate(reader.decoded()):
         by_topic.setdefault(msg.topic, []).append(((msg.log_time_ns, index), decoded))
         topics_by_type.setdefault(msg.type, set()).add(msg.topic)
-    namespace = _loop_namespace(topics_by_type, namespace)
+    namespace = loop_namespace(topics_by_type.get(STATE_TYPE, ()), namespace)
 
     def messages(topic):
         return sorted(by_topic.get(wire.resolve(topic, namespace), []), key=lambda m: m[0])

@@ -49,7 +49,7 @@ from tsr_sim import dynamics, wire
 
 from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.bag.reader import bag_files, BagReader, COMPLETE
-from tsr_koopman_ctrl.bag.tsr_loop import read_runs, STATE_TYPE, TENSION_TYPE
+from tsr_koopman_ctrl.bag.tsr_loop import loop_namespace, read_runs, STATE_TYPE, TENSION_TYPE
 from tsr_koopman_ctrl.evaluation.figures import in_zone
 from tsr_koopman_ctrl.learning.dataset import concatenate, Dataset
 
@@ -229,12 +229,10 @@ def _namespace(bag, types, namespace):
         if wanted not in by_type:
             raise BagDataError(bag, f'wrong types: no {wanted} messages (topics: '
                                f'{listed or "none"})')
-    states = sorted(by_type[STATE_TYPE])
-    if namespace is None:
-        if len(states) > 1:
-            raise BagDataError(bag, f'holds several loops ({", ".join(states)}): give the '
-                               'namespace')
-        namespace = states[0][:-len(wire.STATE_TOPIC)].rstrip('/') or '/'
+    try:
+        namespace = loop_namespace(by_type[STATE_TYPE], namespace)
+    except ValueError as error:
+        raise BagDataError(bag, str(error).removeprefix('bag ')) from None
     for topic, wanted in ((wire.STATE_TOPIC, STATE_TYPE), (wire.TENSION_TOPIC, TENSION_TYPE)):
         name = wire.resolve(topic, namespace)
         if name not in by_type[wanted]:

@@ -113,7 +113,7 @@ class Mlp:
         inputs), (N, k, outputs): forward-mode differentiation, layer by layer."""
         def times(tangents, weight):
             # One 2-D product: numpy multiplies a stack of matrices one by one (3x slower at
-            # 39 x 4 tangents of width 128, 2026-12-01).
+            # 39 x 4 tangents of width 128).
             return (tangents.reshape(-1, weight.shape[0]) @ weight).reshape(
                 tangents.shape[:-1] + weight.shape[1:])
 
