@@ -124,8 +124,9 @@ SIMULATOR_PARAMETERS = {
     'republish_period': (0.5, 'lockstep: wall seconds without a command before the state is '
                          'published again', 0.01, 60.0),
     'progress_every': (100, 'log a progress line every N steps (0: never)', 0, 10 ** 9),
-    'wait_for_subscribers': (0, 'lockstep: publish no state until the state topic has this '
-                             'many subscribers (controller, recorder)', 0, 1000),
+    'wait_for_subscribers': (0, 'lockstep: publish no state until this many readers of the '
+                             'state topic have matched, at the DDS level (controller, '
+                             'recorder)', 0, 1000),
     'exit_on_finish': (False, 'shut the node down when max_steps is reached or the state '
                        'leaves the domain', None, None),
     'rate_hz': (100.0, 'timed: simulation steps per wall second', 0.01, 1e5),
