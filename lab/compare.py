@@ -2,7 +2,7 @@
 from the comparison and the held-out starts, scored against the minimum-time frontier.
 ROS-free (the DDS loop is step-identical).
 
-    python -m lab.compare [--laws ...] [--out docs/comparison]
+    python -m lab.compare [--law ...] [--out docs/comparison]
 
 Every law runs offset-free (the default observer) with its settings from a preset: 'tuned' (the
 laws' defaults, set by tools/tune.py on the mean settle time), 'tuned_ratio' (config/
@@ -146,7 +146,7 @@ def markdown(rows):
 
 def parser():
     p = argparse.ArgumentParser(prog='compare', description=__doc__.split('\n\n')[0])
-    p.add_argument('--laws', nargs='+', default=sorted(set(CONTROLLERS) - SLOW_LAWS),
+    p.add_argument('--law', nargs='+', default=sorted(set(CONTROLLERS) - SLOW_LAWS),
                    choices=sorted(CONTROLLERS),
                    help=f'default: every law but {", ".join(sorted(SLOW_LAWS))} (slow: name it, '
                    'with --steps 700)')
@@ -165,7 +165,7 @@ def parser():
 def main(argv=None):
     args = parser().parse_args(argv)
     try:
-        rows, loops = compare(args.laws, args.presets, args.steps, args.theta_max)
+        rows, loops = compare(args.law, args.presets, args.steps, args.theta_max)
     except ValueError as error:
         print(f'compare: {error}', file=sys.stderr)
         return 2

@@ -1,6 +1,6 @@
 """Offset-free control against actuator error, lag and sensor noise: the settle-time grid.
 
-    python -m lab.robustness [--laws koopman_mpc linear_lqr] [--out DIR]
+    python -m lab.robustness [--law koopman_mpc linear_lqr] [--out DIR]
 
 For each law, bare (observer off) and offset-free (the default), from the comparison starts
 and two held-out starts, on the nominal plant and on a tension actuator with gain 0.8, 0.9,
@@ -84,12 +84,12 @@ def markdown(rows):
 
 def main(argv=None):
     p = argparse.ArgumentParser(prog='robustness', description=__doc__.split('\n\n')[0])
-    p.add_argument('--laws', nargs='+', default=['koopman_mpc', 'linear_lqr'],
+    p.add_argument('--law', nargs='+', default=['koopman_mpc', 'linear_lqr'],
                    choices=sorted(CONTROLLERS))
     p.add_argument('--steps', type=cli.STEPS, default=2000)
     p.add_argument('--out', default=os.path.join('out', 'robustness'), type=cli.output_dir)
     args = p.parse_args(argv)
-    rows = grid(args.laws, args.steps)
+    rows = grid(args.law, args.steps)
     text = markdown(rows)
     write_results(args.out, 'robustness', rows, text)
     print(text)

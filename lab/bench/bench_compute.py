@@ -27,7 +27,7 @@ from tsr_koopman_ctrl.evaluation import PAPER_START
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--steps', type=int, default=500)
-    parser.add_argument('--laws', nargs='+', default=list(CONTROLLERS), choices=list(CONTROLLERS))
+    parser.add_argument('--law', nargs='+', default=list(CONTROLLERS), choices=list(CONTROLLERS))
     parser.add_argument('--offset-free', action='store_true',
                         help='wrap each law in the disturbance observer (the node default)')
     parser.add_argument('--preset', help="settings preset, by path or by name under config/ "
@@ -41,7 +41,7 @@ def main():
     h = dynamics.PAPER_STEP
     period_us = Scale().tau_to_seconds(h) * 1e6   # of flight, at the paper's orbit rate
     rows = []
-    for name in args.laws:
+    for name in args.law:
         law, seconds = make_controller(name, observer=observer, **settings.get(name, {})), []
         closed_loop(law, PAPER_START, args.steps, compute_seconds=seconds)
         times = np.array(seconds) * 1e6

@@ -59,8 +59,8 @@ def run_tool(tool, argv):
     ('deploy', ['--preset', '{bad_yaml}'], 'bad.yaml: not valid YAML (line 2)'),
     ('deploy', ['--plant', '{bad_yaml}'], 'bad.yaml: not valid YAML (line 2)'),
     ('compare', ['--steps', '0'], 'argument --steps: 0 must be >= 1'),
-    ('compare', ['--laws', 'linear_lqr', '--presets', '{bad_yaml}'], 'not valid YAML'),
-    ('robustness', ['--laws', 'pid'], "argument --laws: invalid choice: 'pid'"),
+    ('compare', ['--law', 'linear_lqr', '--presets', '{bad_yaml}'], 'not valid YAML'),
+    ('robustness', ['--law', 'pid'], "argument --law: invalid choice: 'pid'"),
     ('mpc_sweep', ['--horizons', '0'], 'argument --horizons: 0 must be >= 1'),
     ('tune', ['--law', 'linear_lqr', '--trials', '0'], 'argument --trials: 0 must be >= 1'),
     ('tune', ['--law', 'linear_lqr', '--swing-max', '-1'], '--swing-max: -1 must be > 0'),
@@ -140,7 +140,7 @@ def test_retrain_checks_a_given_anchor_before_reading_bags(tmp_path, monkeypatch
 def test_compare_reads_every_preset_before_the_first_run(tmp_path, monkeypatch, capsys):
     """A bad second preset was found after the first preset's runs (minutes at 2000 steps)."""
     monkeypatch.chdir(tmp_path)
-    assert run_tool('compare', ['--laws', 'linear_lqr', '--presets', 'tuned', 'no_such',
+    assert run_tool('compare', ['--law', 'linear_lqr', '--presets', 'tuned', 'no_such',
                                 '--steps', '50']) == 2
     out, err = capsys.readouterr()
     assert "no settings preset 'no_such'" in err and out == ''     # no run printed

@@ -18,7 +18,7 @@ def test_the_untuned_preset_holds_the_settings_before_tuning():
 
 
 def test_compare_scores_every_start_with_the_loop_s_own_figures(tmp_path):
-    assert compare.main(['--laws', 'linear_lqr', '--presets', 'untuned', '--steps', '1200',
+    assert compare.main(['--law', 'linear_lqr', '--presets', 'untuned', '--steps', '1200',
                          '--out', str(tmp_path)]) == 0
     rows = json.loads((tmp_path / 'comparison.json').read_text())
     assert len(rows) == 9 and {r['starts'] for r in rows} == {'comparison', 'held-out'}
@@ -32,7 +32,7 @@ def test_compare_scores_every_start_with_the_loop_s_own_figures(tmp_path):
 
 
 def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):
-    assert compare.main(['--laws', 'linear_lqr', 'koopman_mpc', '--presets', 'tuned',
+    assert compare.main(['--law', 'linear_lqr', 'koopman_mpc', '--presets', 'tuned',
                          '--theta-max', '0.5', '--steps', '300', '--out', str(tmp_path)]) == 0
     rows = json.loads((tmp_path / 'comparison.json').read_text())
     assert {r['law'] for r in rows} == {'koopman_mpc'} and len(rows) == 9
@@ -46,7 +46,7 @@ def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):
     assert '| tuned, \\|theta\\| <= 0.5 |' in table[2]
     assert len({line.replace('\\|', '').count('|') for line in table}) == 1
     # None of the laws takes one: an error, not an empty table.
-    assert compare.main(['--laws', 'linear_lqr', '--theta-max', '0.4', '--steps', '10',
+    assert compare.main(['--law', 'linear_lqr', '--theta-max', '0.4', '--steps', '10',
                          '--out', str(tmp_path / 'none')]) == 2
     assert not (tmp_path / 'none').exists()
 
@@ -58,7 +58,7 @@ def test_a_law_with_hand_picked_defaults_runs_once_unless_a_preset_names_it(
     monkeypatch.setattr(compare, 'NOT_TUNED', {'linear_lqr'})
     without = tmp_path / 'without.yaml'
     without.write_text('/**:\n  ros__parameters:\n    koopman_mpc:\n      horizon: 4\n')
-    assert compare.main(['--laws', 'linear_lqr', '--presets', 'tuned', str(without), 'untuned',
+    assert compare.main(['--law', 'linear_lqr', '--presets', 'tuned', str(without), 'untuned',
                          '--steps', '200', '--out', str(tmp_path)]) == 0
     rows = json.loads((tmp_path / 'comparison.json').read_text())
     assert [r['preset'] for r in rows] == ['defaults'] * 9 + ['untuned'] * 9
@@ -68,14 +68,14 @@ def test_a_law_with_hand_picked_defaults_runs_once_unless_a_preset_names_it(
     # defaults under the file's name); naming none of the laws compared, it is an error, not
     # an empty table.
     (tmp_path / 'comparison.json').unlink()
-    assert compare.main(['--laws', 'fractional_pd', '--presets', str(without), '--steps', '200',
+    assert compare.main(['--law', 'fractional_pd', '--presets', str(without), '--steps', '200',
                          '--out', str(tmp_path)]) == 2
     assert capsys.readouterr().err == (
         f"compare: --presets {without}: sets none of the laws compared (['fractional_pd']), "
         "only ['koopman_mpc']\n")
     assert not (tmp_path / 'comparison.json').exists()
     # A repeated preset runs once.
-    assert compare.main(['--laws', 'linear_lqr', '--presets', 'untuned', 'untuned',
+    assert compare.main(['--law', 'linear_lqr', '--presets', 'untuned', 'untuned',
                          '--steps', '200', '--out', str(tmp_path)]) == 0
     assert len(json.loads((tmp_path / 'comparison.json').read_text())) == 9
 
@@ -140,8 +140,8 @@ def test_the_committed_comparison_is_what_the_command_runs_by_default():
     docs = ROOT / 'docs' / 'comparison'
     rows = json.loads((docs / 'comparison.json').read_text())
     defaults = compare.parser().parse_args([])
-    assert 'koopman_nmpc' not in defaults.laws
-    assert sorted({r['law'] for r in rows}) == sorted(defaults.laws)
+    assert 'koopman_nmpc' not in defaults.law
+    assert sorted({r['law'] for r in rows}) == sorted(defaults.law)
     assert {r['preset'] for r in rows} == set(defaults.presets) | {'defaults'}
     assert {r['law'] for r in rows if r['preset'] == 'defaults'} == compare.NOT_TUNED - {
         'koopman_nmpc'}

@@ -10,7 +10,7 @@ from lab import robustness
 
 
 def test_a_grid_where_nothing_settles_reports_the_final_offsets(tmp_path):
-    assert robustness.main(['--laws', 'linear_lqr', '--steps', '200', '--out',
+    assert robustness.main(['--law', 'linear_lqr', '--steps', '200', '--out',
                             str(tmp_path)]) == 0
     rows = json.loads((tmp_path / 'robustness.json').read_text())
     nominal = next(r for r in rows if r['control'] == 'bare' and r['case'] == 'nominal')
