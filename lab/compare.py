@@ -5,8 +5,8 @@ ROS-free (the DDS loop is step-identical).
     python -m lab.compare [--law ...] [--out docs/comparison]
 
 Every law runs offset-free (the default observer) with its settings from a preset: 'tuned' (the
-laws' defaults, set by tools/tune.py on the mean settle time), 'tuned_ratio' (config/
-tuned_ratio.yaml: tools/tune.py --objective worst-ratio, every law the NMPC included) or
+laws' defaults, set by lab/tune.py on the mean settle time), 'tuned_ratio' (config/
+tuned_ratio.yaml: lab/tune.py --objective worst-ratio, every law the NMPC included) or
 'untuned' (config/untuned.yaml), or 'tuned_cross' (config/tuned_cross.yaml: the
 quadratic-cost laws tuned for the ratio with the state weight's cross terms); a preset file
 shows the laws it names. Per run: settle time

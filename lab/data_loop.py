@@ -29,7 +29,8 @@ from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, HELD_OUT_STARTS,
                                          run_figures)
 from tsr_koopman_ctrl.learning import multistep_errors
 from tsr_koopman_ctrl.learning.recorded import DEFAULT_STEPS as WINDOW_STEPS
-from tsr_koopman_ctrl.learning.recorded import find_bags, read_bags, windows_dataset
+from tsr_koopman_ctrl.bag.checks import find_bags
+from tsr_koopman_ctrl.learning.recorded import read_bags, windows_dataset
 from tsr_koopman_ctrl.learning.retraining import retrain, RetrainOptions
 from tsr_koopman_ctrl.model import DEFAULT_MODEL, LiftedModel
 

@@ -9,7 +9,8 @@ import pytest
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS
 from tsr_koopman_ctrl.learning import multistep_errors
-from tsr_koopman_ctrl.learning.recorded import find_bags, read_bags, windows_dataset
+from tsr_koopman_ctrl.bag.checks import find_bags
+from tsr_koopman_ctrl.learning.recorded import read_bags, windows_dataset
 from tsr_koopman_ctrl.model import LiftedModel
 from lab import data_loop as loop
 

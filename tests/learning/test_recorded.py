@@ -18,6 +18,7 @@ from conftest import ROOT
 
 from tsr_koopman_ctrl import bag
 from tsr_koopman_ctrl.bag import definitions
+from tsr_koopman_ctrl.bag.checks import find_bags
 from tsr_koopman_ctrl.learning import recorded
 
 MSG_DIR = ROOT / 'ros2_ws' / 'src' / 'tsr_msgs' / 'msg'
@@ -504,11 +505,11 @@ def test_find_bags_walks_directories_and_reads_each_bag_once(good_bag, tmp_path)
     x, u, _ = loop_data(40)
     nested = write_loop(tmp_path / 'runs' / 'day1' / 'b1', x, u)
     write_loop(tmp_path / 'runs' / 'b0', x, u)
-    assert recorded.find_bags([tmp_path / 'runs', nested, path]) == [
+    assert find_bags([tmp_path / 'runs', nested, path]) == [
         str(tmp_path / 'runs' / 'b0'), str(nested), str(path)]
     (tmp_path / 'empty_dir').mkdir()
     with pytest.raises(recorded.BagDataError, match='no bag below it'):
-        recorded.find_bags([tmp_path / 'empty_dir'])
+        find_bags([tmp_path / 'empty_dir'])
     good, errors = recorded.read_bags([path, tmp_path / 'missing'], steps=30)
     assert len(good) == 1 and len(errors) == 1
     assert str(errors[0]) == f'{tmp_path / "missing"}: no such file or directory'

@@ -5,7 +5,7 @@
     runs = read_runs('bags/reset_...')           # one RecordedLoop per run (a reset between)
     print(loop.report.summary())                 # one line per file: complete, truncated, ...
 
-A bag a crash left open: `python -m tsr_koopman_ctrl.commands.bag recover BAG` (tools/bag.py).
+A bag a crash left open: `python -m tsr_koopman_ctrl.commands.bag recover BAG` (commands/bag.py).
 """
 
 from tsr_koopman_ctrl.bag.definitions import TopicInfo  # noqa: F401

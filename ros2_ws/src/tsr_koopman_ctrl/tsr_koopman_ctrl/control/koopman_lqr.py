@@ -20,7 +20,7 @@ MODEL = 'koopman_block'
 class KoopmanLqrSettings(LawSettings):
     law: ClassVar[str] = 'koopman_lqr'
     model: str = setting(MODEL, 'model directory, or the name of a shipped model')
-    # Tuned: tools/tune.py --fix state_weight=state, 60 trials, swing <= 0.8 rad
+    # Tuned: lab/tune.py --fix state_weight=state, 60 trials, swing <= 0.8 rad
     # (docs/tuning/koopman_lqr_state_weight-state_swing0.8.md; the joint search's best, Q' = I
     # with R' = 9.93, scored 4.84 against 4.70); before tuning the paper's Q' = I, R' = 15
     # (config/untuned.yaml).

@@ -59,7 +59,7 @@ class PhysicsNmpcSettings(LawSettings):
     horizon: float = setting(3.6, 'prediction horizon [tau]', low=0.2, high=20.0)
     interval: float = setting(0.1, 'prediction interval after the four short lead ones [tau]',
                               low=0.01, high=1.0)
-    # 0.8 by default: the swing bound every law is tuned and compared under (tools/tune.py).
+    # 0.8 by default: the swing bound every law is tuned and compared under (lab/tune.py).
     theta_max: float = setting(0.8, 'bound on |theta| at every prediction node, soft with an '
                                'exact penalty [rad]; >= pi: no bound', low=0.01, high=3.2)
     q: tuple = setting((10.0, 1.0, 10.0, 1.0), "stage weights on the smoothed |.| of [theta, "

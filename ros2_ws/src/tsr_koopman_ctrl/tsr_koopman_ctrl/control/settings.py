@@ -13,9 +13,9 @@ def setting(default, description, low=None, high=None, choices=None, tune=None,
             searched=True):
     """A settings field: its default, a one-line description with units, a range or choices.
     A sequence default (a tuple) fixes the number of values the setting takes. `tune`: the
-    search space of tools/tune.py, (low, high, 'log' or 'linear') for a number or for every
+    search space of lab/tune.py, (low, high, 'log' or 'linear') for a number or for every
     component of a sequence, a list of such triples (one per component), or a list of choices
-    for a string; None: not tuned. `searched` False: tools/tune.py searches it only when asked
+    for a string; None: not tuned. `searched` False: lab/tune.py searches it only when asked
     (`--also NAME`), so the studies recorded without it stay reproducible."""
     if isinstance(default, list):
         default = tuple(default)
@@ -27,7 +27,7 @@ def setting(default, description, low=None, high=None, choices=None, tune=None,
 
 def cross_weight_setting(search_bound=10.0):
     """The state weight's cross terms, declared once for every law with a quadratic cost on
-    the state (`control.lqr.state_cost_matrix`); tools/tune.py searches each in
+    the state (`control.lqr.state_cost_matrix`); lab/tune.py searches each in
     [-search_bound, search_bound] when asked (`--also q_cross`)."""
     return setting((0.0,) * 6, 'cross terms of the state weight Q = L L^T: the entries of L '
                    'below its diagonal sqrt(q), row by row (L10, L20, L21, L30, L31, L32); '

@@ -1,7 +1,8 @@
 """Recorded bags -> training windows, trusting a bag only as far as it can be checked.
 
+    from tsr_koopman_ctrl.bag.checks import find_bags
     from tsr_koopman_ctrl.learning import recorded
-    bags = recorded.find_bags(['bags/'])             # a bag, one .mcap file, or every bag below
+    bags = find_bags(['bags/'])                      # a bag, one .mcap file, or every bag below
     windows = recorded.read_windows(bags[0])        # BagWindows: data, provenance, warnings
     data = windows.data                              # Dataset of 30-step windows
 
@@ -18,8 +19,8 @@ skipped is counted.
 
 A bag that cannot give trustworthy windows raises `BagDataError`, one line naming the bag:
 empty; no tsr_msgs/msg/TsrState or TensionCommand messages (wrong types); a TsrState or
-TensionCommand recorded with another definition than the installed one (`check_definition`: by
-type hash, else by the normalised definition, so a bag of stock `ros2 bag record` is read); no
+TensionCommand recorded with another definition than the installed one (`bag.checks`: by type
+hash, else by the normalised definition, so a bag of stock `ros2 bag record` is read); no
 simulator RunInfo (units and sample period unknown); timed mode (a command is not tied to a
 step); another sample period or state size than asked; no complete window. A bag holding a
 reset (the step count restarts, `bag.tsr_loop`) is cut into its runs, each command matched to
@@ -36,10 +37,7 @@ windows, `loop_runs`), the RunInfo (plant, controller, model, excitation)
 and the units scale.
 """
 
-import collections
 import dataclasses
-import functools
-import hashlib
 import json
 import math
 import os
@@ -47,25 +45,15 @@ import os
 import numpy as np
 from tsr_sim import dynamics, wire
 
-from tsr_koopman_ctrl.bag import definitions
-from tsr_koopman_ctrl.bag.reader import bag_files, BagReader, COMPLETE
-from tsr_koopman_ctrl.bag.tsr_loop import loop_namespace, read_runs, STATE_TYPE, TENSION_TYPE
+from tsr_koopman_ctrl.bag.checks import BagDataError, content_hash, loop_topics, scan
+from tsr_koopman_ctrl.bag.reader import BagReader, COMPLETE
+from tsr_koopman_ctrl.bag.tsr_loop import read_runs
 from tsr_koopman_ctrl.evaluation.figures import in_zone
 from tsr_koopman_ctrl.learning.dataset import concatenate, Dataset
 
 DEFAULT_STEPS = 30
 #: Same bound as the sampler's (`SamplingConfig.max_abs_state`): states beyond it are runaways.
 MAX_ABS_STATE = 10.0
-#: Types whose definition must match the installed one: the windows are read from them.
-CHECKED_TYPES = (STATE_TYPE, TENSION_TYPE)
-
-
-class BagDataError(ValueError):
-    """A bag that cannot give training data; str() is one line naming the bag."""
-
-    def __init__(self, bag, what):
-        super().__init__(f'{bag}: {what}')
-        self.bag, self.what = str(bag), what
 
 
 @dataclasses.dataclass
@@ -79,166 +67,6 @@ class BagWindows:
     #: Windows set aside for choosing the best epoch (`validation_fraction`), or None: they
     #: share no step with `data`'s windows.
     validation: Dataset = None
-
-
-def find_bags(paths):
-    """The bags named by `paths`, each once, in order: a bag directory (its .mcap files), one
-    .mcap file, or a directory holding bags anywhere below it (sorted). A directory counts as a
-    bag if it holds .mcap files or a rosbag2 metadata.yaml (then an empty bag is reported as
-    such). Raises BagDataError for a path that names no bag."""
-    found, seen = [], set()
-    for path in paths:
-        path = os.fspath(path)
-        if not os.path.exists(path):
-            raise BagDataError(path, 'no such file or directory')
-        if os.path.isfile(path):
-            if not path.endswith('.mcap'):
-                raise BagDataError(path, 'not a bag (a bag is a directory of .mcap files or '
-                                   'one .mcap file)')
-            bags = [path]
-        else:
-            bags = sorted(directory for directory, _, names in os.walk(path, followlinks=True)
-                          if 'metadata.yaml' in names or any(n.endswith('.mcap') for n in names))
-            if not bags:
-                raise BagDataError(path, 'no bag below it (no .mcap files)')
-        for bag in bags:
-            key = os.path.realpath(bag)
-            if key not in seen:
-                seen.add(key)
-                found.append(bag)
-    return found
-
-
-def content_hash(path):
-    """(sha256 of the bag's .mcap files' bytes concatenated in split order, one entry per file
-    with its own sha256 and size): what identifies the data, whatever the bag is called."""
-    total, files = hashlib.sha256(), []
-    for name in bag_files(path) if os.path.exists(path) else []:
-        digest, size = hashlib.sha256(), 0
-        with open(name, 'rb') as stream:
-            for block in iter(lambda: stream.read(1 << 20), b''):
-                digest.update(block)
-                total.update(block)
-                size += len(block)
-        files.append({'file': os.path.basename(name), 'sha256': digest.hexdigest(),
-                      'bytes': size})
-    return total.hexdigest(), files
-
-
-class MessagesHash:
-    """sha256 of a bag's messages as recorded: per topic, its type and every payload in order;
-    the topics in name order. What identifies the data when the files do not: `bag recover` or
-    another chunking writes the same messages into other bytes (and may interleave the topics
-    differently); log times and file layout are left out."""
-
-    def __init__(self):
-        self.topics = {}
-
-    def add(self, topic, type_name, data):
-        digest = self.topics.get(topic)
-        if digest is None:
-            digest = self.topics[topic] = hashlib.sha256()
-        # Length-prefixed, so that no two message sequences hash the same bytes.
-        digest.update(type_name.encode() + b'\0' + len(data).to_bytes(8, 'little'))
-        digest.update(data)
-
-    def hexdigest(self):
-        total = hashlib.sha256()
-        for topic in sorted(self.topics):
-            total.update(f'{topic}\0{self.topics[topic].hexdigest()}\n'.encode())
-        return total.hexdigest()
-
-
-@functools.lru_cache(maxsize=None)
-def installed_definition(type_name):
-    """The definition this build would record for `type_name` (the ament index's .msg files)."""
-    try:
-        return definitions.message_definition(type_name)
-    except Exception as error:         # package not found, file missing: not the bag's fault
-        raise ValueError(f'cannot check bags: the installed definition of {type_name} is not '
-                         f'found ({type(error).__name__}: {error}); is the workspace sourced?')
-
-
-@functools.lru_cache(maxsize=None)
-def installed_hash(type_name):
-    """The installed RIHS01 type hash of `type_name` ('' if the build has none)."""
-    return definitions.type_hash(type_name)
-
-
-def check_definition(bag, type_name, text, recorded_hash=''):
-    """Refuse a type recorded with another definition than the installed one.
-
-    By the RIHS01 type hash when the bag (channel or metadata.yaml) and the installation both
-    have one: it is what ROS itself compares. Else by the definitions normalised
-    (`definitions.normalized_definition`): writers spell the same type differently (rosbag2:
-    'MSG: std_msgs/Header', a blank line before each separator, dependencies sorted by name), so
-    only field types, names, defaults, constants and their order are compared. Comments are
-    left out although ours carry units: the type hash leaves them out too (a hash match says
-    nothing about them), and units on the wire are REP 103 SI by convention, which no comment
-    changes; a bag's own scale is its RunInfo, checked apart."""
-    ours = installed_hash(type_name)
-    if recorded_hash and ours:
-        if recorded_hash == ours:
-            return
-        difference = f'type hash {recorded_hash} in the bag, {ours} installed'
-    else:
-        difference = definitions.definition_difference(
-            text, installed_definition(type_name), type_name)
-        if not difference:
-            return
-    raise BagDataError(bag, f'{type_name} was recorded with another message definition than '
-                       f'the installed one ({difference})')
-
-
-def scan(bag, reader):
-    """One pass over the bag: message counts per topic, the topic types, the hash of the
-    messages (`MessagesHash`), and every state and command checked (its definition against the
-    installed one, then that it decodes)."""
-    from mcap_ros2.decoder import DecoderFactory
-    factory, decoders, checked = DecoderFactory(), {}, {}
-    counts, types, digest = collections.Counter(), {}, MessagesHash()
-    for msg in reader.messages():
-        counts[msg.topic] += 1
-        digest.add(msg.topic, msg.type, msg.data)
-        types.setdefault(msg.topic, set()).add(msg.type)
-        if msg.type not in CHECKED_TYPES:
-            continue
-        schema = reader.schemas[msg.type]
-        type_hash = reader.type_hash(msg.topic)
-        # Every file of a bag has its own schema, every topic its own hash.
-        if checked.get((msg.type, type_hash)) is not schema:
-            check_definition(bag, msg.type, schema.data.decode('utf-8', 'replace'), type_hash)
-            checked[msg.type, type_hash] = schema
-            decoders[msg.type] = factory.decoder_for('cdr', schema)
-        try:
-            decoders[msg.type](msg.data)
-        except Exception as error:
-            raise BagDataError(bag, f'message {counts[msg.topic]} on {msg.topic} does not '
-                               f'decode as {msg.type} ({type(error).__name__})')
-    return counts, types, digest.hexdigest()
-
-
-def _namespace(bag, types, namespace):
-    """The loop's namespace, checking that the bag has states and commands of our types."""
-    by_type = collections.defaultdict(set)
-    for topic, names in types.items():
-        for name in names:
-            by_type[name].add(topic)
-    listed = ', '.join(f'{t} [{"/".join(sorted(n))}]' for t, n in sorted(types.items()))
-    for wanted in CHECKED_TYPES:
-        if wanted not in by_type:
-            raise BagDataError(bag, f'wrong types: no {wanted} messages (topics: '
-                               f'{listed or "none"})')
-    try:
-        namespace = loop_namespace(by_type[STATE_TYPE], namespace)
-    except ValueError as error:
-        raise BagDataError(bag, str(error).removeprefix('bag ')) from None
-    for topic, wanted in ((wire.STATE_TOPIC, STATE_TYPE), (wire.TENSION_TOPIC, TENSION_TYPE)):
-        name = wire.resolve(topic, namespace)
-        if name not in by_type[wanted]:
-            raise BagDataError(bag, f'wrong types: no {wanted} messages on {name} (topics: '
-                               f'{listed})')
-    return namespace
 
 
 def _json(value):
@@ -294,7 +122,7 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
         detail = str(error).split(': ', 1)[-1]
         raise BagDataError(bag, f'empty bag: no readable message ({detail})')
     counts, types, messages_digest = scan(bag, reader)
-    namespace = _namespace(bag, types, namespace)
+    namespace = loop_topics(bag, types, namespace)
     try:
         loops = read_runs(bag, namespace=namespace)
     except ValueError as error:

@@ -42,6 +42,7 @@ import time
 
 import numpy as np
 
+from tsr_koopman_ctrl.bag.checks import BagDataError, find_bags
 from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.learning import distributed, recorded
 from tsr_koopman_ctrl.learning.deep_koopman import DeepKoopman
@@ -209,7 +210,7 @@ def _read(paths, options, indices):
         try:
             offset = {'validation_offset': index} if options.get('validation_fraction') else {}
             results[index] = recorded.read_windows(paths[index], **options, **offset)
-        except recorded.BagDataError as error:
+        except BagDataError as error:
             results[index] = str(error)
     return results
 
@@ -322,8 +323,8 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
                          f'{context.world_size} ranks')
     if not held_out and not args.test_trajectories:
         raise UsageError('nothing to test on: give --held-out bags or --test-trajectories > 0')
-    train_paths = recorded.find_bags(bags)
-    held_paths = recorded.find_bags(held_out) if held_out else []
+    train_paths = find_bags(bags)
+    held_paths = find_bags(held_out) if held_out else []
     held_real = {os.path.realpath(p) for p in held_paths}
     both = [p for p in train_paths if os.path.realpath(p) in held_real]
     if both:
