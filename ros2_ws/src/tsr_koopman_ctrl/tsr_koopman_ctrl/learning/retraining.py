@@ -300,6 +300,128 @@ class DataSummary:
 
 # --------------------------------------------------------------------------- retraining
 
+@dataclasses.dataclass
+class BagSet:
+    """The training and held-out bags as every rank sees them: their paths, what this rank read
+    (`local`, `local_held`: BagWindows or the error's line), what every rank read (`train`,
+    `held`: provenance and warnings or the error's line), the bad ones and what is used."""
+
+    train_paths: list
+    held_paths: list
+    local: dict
+    local_held: dict
+    train: dict
+    held: dict
+    bad: list
+    by_bags: bool       # ranks share out bags (else every rank reads every bag: windows)
+
+    @property
+    def skipped(self):
+        return {(kind, index) for kind, index, _ in self.bad}
+
+    @property
+    def used(self):
+        """Indices of the training bags trained on."""
+        return [i for i in sorted(self.train) if ('training', i) not in self.skipped]
+
+    def usable_held(self):
+        return [i for i in sorted(self.held)
+                if not isinstance(self.held[i], str) and ('held-out', i) not in self.skipped]
+
+
+def read_bag_set(bags, held_out, args, config, context, say):
+    """Find and read the bags (each rank its shard, rank 0 the held-out ones too), gather what
+    every rank found so that all take the same decisions (stop, skip), and say what is used."""
+    train_paths = find_bags(bags)
+    held_paths = find_bags(held_out) if held_out else []
+    held_real = {os.path.realpath(p) for p in held_paths}
+    both = [p for p in train_paths if os.path.realpath(p) in held_real]
+    if both:
+        raise UsageError(f'{", ".join(both)}: given to train on and held out; a bag is one or '
+                         'the other')
+    held_options = {'steps': args.steps, 'namespace': args.namespace, 'h': config.h,
+                    'state_dim': config.state_dim}
+    options = dict(held_options, stride=args.stride,
+                   validation_fraction=config.validation_fraction)
+    by_bags = len(train_paths) >= context.world_size
+    mine = (distributed.shard(list(range(len(train_paths))), context) if by_bags
+            else list(range(len(train_paths))))
+    local, local_held, failed = {}, {}, None
+    try:
+        local = _read(train_paths, options, mine)
+        if context.is_main:
+            local_held = _read(held_paths, held_options, range(len(held_paths)))
+    except ValueError as error:        # not a bag's fault (the installed definitions)
+        failed = str(error)
+    agree(failed)
+    gathered = distributed.gather(({i: _summary(r) for i, r in local.items()},
+                                   {i: _summary(r) for i, r in local_held.items()}))
+    train, held = {}, {}
+    for part_train, part_held in gathered:
+        train.update(part_train)
+        held.update(part_held)
+    bad = _check(train_paths, held_paths, train, held, args.skip_bad)
+    found = BagSet(train_paths, held_paths, local, local_held, train, held, bad, by_bags)
+    for index in found.used:
+        for warning in train[index]['warnings']:
+            say(f'retrain: warning: {warning}', file=sys.stderr)
+        say(f"{train_paths[index]}: {train[index]['provenance']['windows']} windows",
+            flush=True)
+    for kind, index, line in bad:
+        say(f'retrain: warning: skipped {kind} bag: {line}', file=sys.stderr)
+    if not found.used:
+        raise UsageError('no usable training bag')
+    # --skip-bad may leave nothing to score the models on; the model file needs a test error,
+    # so this is refused before training, as giving nothing to test on is.
+    if held_out and not args.test_trajectories and not found.usable_held():
+        raise UsageError('no usable held-out bag and --test-trajectories 0: nothing to test on '
+                         '(give a usable --held-out bag or --test-trajectories > 0)')
+    return found
+
+
+def training_windows(found, context):
+    """This rank's training windows and validation windows (or None: the trainer's random
+    split, on every rank alike)."""
+    mine_used = [i for i in sorted(found.local) if ('training', i) not in found.skipped]
+    parts = [found.local[i].data for i in mine_used]
+    data = datasets.concatenate(parts) if parts else None
+    held_parts = [found.local[i].validation for i in mine_used
+                  if found.local[i].validation is not None]
+    validation = datasets.concatenate(held_parts) if held_parts else None
+    if data is not None and not found.by_bags:
+        data = data.subset(np.arange(context.rank, len(data), context.world_size))
+        if validation is not None:
+            validation = validation.subset(
+                np.arange(context.rank, len(validation), context.world_size))
+    # Validation blocks on every rank, or the trainer's random split on every rank (bags too
+    # short for a block of three windows).
+    if not all(distributed.gather(validation is not None and len(validation) > 0)):
+        validation = None
+    agree(None if data is not None and len(data) else
+          f'rank {context.rank} has no usable bag (bags are shared out one by one over the '
+          'ranks: use fewer ranks)')
+    return data, validation
+
+
+def test_sets(found, held_out, args, config, say):
+    """{'held_out': the usable held-out bags' windows, 'table1': a fresh sampled test set}, as
+    asked for (rank 0)."""
+    tests = {}
+    parts = [found.local_held[i].data for i in found.usable_held() if i in found.local_held]
+    if parts:
+        tests['held_out'] = datasets.concatenate(parts)
+    elif held_out:
+        say('retrain: warning: no usable held-out bag', file=sys.stderr)
+    else:
+        say('retrain: warning: no --held-out bags: no error on recorded data the model never '
+            'saw', file=sys.stderr)
+    if args.test_trajectories:
+        tests['table1'], _ = datasets.sample(datasets.SamplingConfig(
+            trajectories=args.test_trajectories, steps=args.steps, h=config.h,
+            seed=datasets.TEST_SEED))
+    return tests
+
+
 def retrain(bags, out, held_out=(), options=None, context=None, command=None):
     """Retrain on recorded bags (module docstring): the RetrainResult on the main rank, None
     on the others. `options`: RetrainOptions; `context`: a `distributed` context (default: one
@@ -323,77 +445,12 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
                          f'{context.world_size} ranks')
     if not held_out and not args.test_trajectories:
         raise UsageError('nothing to test on: give --held-out bags or --test-trajectories > 0')
-    train_paths = find_bags(bags)
-    held_paths = find_bags(held_out) if held_out else []
-    held_real = {os.path.realpath(p) for p in held_paths}
-    both = [p for p in train_paths if os.path.realpath(p) in held_real]
-    if both:
-        raise UsageError(f'{", ".join(both)}: given to train on and held out; a bag is one or '
-                         'the other')
 
-    # Each rank reads its shard (rank 0 the held-out bags too); what they found is gathered so
-    # that every rank takes the same decisions (stop, skip) from the same facts.
-    held_options = {'steps': args.steps, 'namespace': args.namespace, 'h': config.h,
-                    'state_dim': config.state_dim}
-    options = dict(held_options, stride=args.stride,
-                   validation_fraction=config.validation_fraction)
-    by_bags = len(train_paths) >= context.world_size
-    mine = (distributed.shard(list(range(len(train_paths))), context) if by_bags
-            else list(range(len(train_paths))))
-    local, local_held, failed = {}, {}, None
-    try:
-        local = _read(train_paths, options, mine)
-        if context.is_main:
-            local_held = _read(held_paths, held_options, range(len(held_paths)))
-    except ValueError as error:        # not a bag's fault (the installed definitions)
-        failed = str(error)
-    agree(failed)
-    gathered = distributed.gather(({i: _summary(r) for i, r in local.items()},
-                                   {i: _summary(r) for i, r in local_held.items()}))
-    train, held = {}, {}
-    for part_train, part_held in gathered:
-        train.update(part_train)
-        held.update(part_held)
-    bad = _check(train_paths, held_paths, train, held, args.skip_bad)
-    skipped = {(kind, index) for kind, index, _ in bad}
-    for index in sorted(train):
-        s = train[index]
-        if ('training', index) not in skipped:
-            for warning in s['warnings']:
-                say(f'retrain: warning: {warning}', file=sys.stderr)
-            say(f"{train_paths[index]}: {s['provenance']['windows']} windows", flush=True)
-    for kind, index, line in bad:
-        say(f'retrain: warning: skipped {kind} bag: {line}', file=sys.stderr)
-    used = [i for i in sorted(train) if ('training', i) not in skipped]
-    if not used:
-        raise UsageError('no usable training bag')
-    # --skip-bad may leave nothing to score the models on; the model file needs a test error,
-    # so this is refused before training, as giving nothing to test on is.
-    if held_out and not args.test_trajectories and all(
-            isinstance(held[i], str) or ('held-out', i) in skipped for i in held):
-        raise UsageError('no usable held-out bag and --test-trajectories 0: nothing to test on '
-                         '(give a usable --held-out bag or --test-trajectories > 0)')
-
-    mine_used = [i for i in sorted(local) if ('training', i) not in skipped]
-    parts = [local[i].data for i in mine_used]
-    data = datasets.concatenate(parts) if parts else None
-    held_parts = [local[i].validation for i in mine_used if local[i].validation is not None]
-    validation = datasets.concatenate(held_parts) if held_parts else None
-    if data is not None and not by_bags:
-        data = data.subset(np.arange(context.rank, len(data), context.world_size))
-        if validation is not None:
-            validation = validation.subset(
-                np.arange(context.rank, len(validation), context.world_size))
-    # Validation blocks on every rank, or the trainer's random split on every rank (bags too
-    # short for a block of three windows).
-    if not all(distributed.gather(validation is not None and len(validation) > 0)):
-        validation = None
-    agree(None if data is not None and len(data) else
-          f'rank {context.rank} has no usable bag (bags are shared out one by one over the '
-          'ranks: use fewer ranks)')
+    found = read_bag_set(bags, held_out, args, config, context, say)
+    data, validation = training_windows(found, context)
     recorded_windows = len(data)
-    config, anchor_record = anchored(config, anchor,
-                                     [train[i]['provenance']['zone_commands'] for i in used])
+    config, anchor_record = anchored(
+        config, anchor, [found.train[i]['provenance']['zone_commands'] for i in found.used])
     say(f"anchor tension {config.anchor_tension:.4f} ({anchor_record['source']})", flush=True)
     sampled = None
     if args.sampled_ratio > 0:
@@ -408,28 +465,16 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
     total_recorded = sum(n for n, _ in counts)
     sampled_provenance = [dict(p, ratio=args.sampled_ratio) for _, ps in counts for p in ps]
     total_sampled = sum(p['kept'] for p in sampled_provenance)
-    say(f'training on {total_recorded} recorded windows from {len(used)} bags'
+    say(f'training on {total_recorded} recorded windows from {len(found.used)} bags'
         + (f' and {total_sampled} sampled Table-1 trajectories (ratio {args.sampled_ratio:g})'
            if sampled_provenance else '')
-        + (f', {context.world_size} ranks sharing out {"bags" if by_bags else "windows"}'
-           if context.active else ''), flush=True)
+        + (f', {context.world_size} ranks sharing out '
+           f'{"bags" if found.by_bags else "windows"}' if context.active else ''), flush=True)
 
     trainer = Trainer(config, device=args.device, progress=args.progress, structure=structure)
     tests, before = {}, {}
     if context.is_main:
-        held_parts = [local_held[i].data for i in sorted(local_held)
-                      if not isinstance(local_held[i], str) and ('held-out', i) not in skipped]
-        if held_parts:
-            tests['held_out'] = datasets.concatenate(held_parts)
-        elif held_out:
-            say('retrain: warning: no usable held-out bag', file=sys.stderr)
-        else:
-            say('retrain: warning: no --held-out bags: no error on recorded data the model '
-                'never saw', file=sys.stderr)
-        if args.test_trajectories:
-            tests['table1'], _ = datasets.sample(datasets.SamplingConfig(
-                trajectories=args.test_trajectories, steps=args.steps, h=config.h,
-                seed=datasets.TEST_SEED))
+        tests = test_sets(found, held_out, args, config, say)
         before = {name: None for name in tests}
         if init is not None:
             net = DeepKoopman.from_numpy(init_tensors, init_config).to(trainer.device).eval()
@@ -453,21 +498,21 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
     after = {name: errors_summary(evaluate(model, d, trainer.device))
              for name, d in tests.items()}
     command = command or f'tsr_koopman_ctrl.learning.retrain({list(bags)!r}, {out!r}, ...)'
-    bag_provenance = [train[i]['provenance'] for i in used]
+    bag_provenance = [found.train[i]['provenance'] for i in found.used]
     record = {
         'bags': [{k: p[k] for k in ('path', 'sha256', 'messages_sha256', 'files', 'messages',
                                     'windows')}
                  for p in bag_provenance],
-        'held_out': [held[i]['provenance'] for i in sorted(held)
-                     if not isinstance(held[i], str) and ('held-out', i) not in skipped],
-        'skipped': [{'kind': kind, 'bag': (train_paths if kind == 'training' else held_paths)[i],
-                     'error': line} for kind, i, line in bad],
+        'held_out': [found.held[i]['provenance'] for i in found.usable_held()],
+        'skipped': [{'kind': kind,
+                     'bag': (found.train_paths if kind == 'training' else found.held_paths)[i],
+                     'error': line} for kind, i, line in found.bad],
         'init': init, 'steps': args.steps, 'stride': args.stride, 'anchor': anchor_record,
         'validation_windows': total_validation,
         'recorded_windows': total_recorded,
         'sampled_ratio': args.sampled_ratio, 'sampled_trajectories': total_sampled,
         'errors_before': before, 'errors_after': after,
-        'world_size': context.world_size, 'sharding': 'bags' if by_bags else 'windows',
+        'world_size': context.world_size, 'sharding': 'bags' if found.by_bags else 'windows',
         'per_rank_batch': config.batch_size // context.world_size,
         'git_commit': git_commit(), 'command': command}
     summary = DataSummary(bag_provenance + sampled_provenance,
