@@ -111,6 +111,13 @@ class NmpcSettings(LawSettings):
                                    '>= 10: none', low=0.0, high=10.0)
     smoothing: float = setting(0.01, "the 1-norm's smoothing eps in sqrt(y^2 + eps^2)",
                                low=1e-6, high=1.0)
+    rate_weight: float = setting(0.06, 'weight on the smoothed |u_j - u_{j-1}| along the plan, '
+                                 'u_{-1} the tension flown last step (total variation: '
+                                 'against chattering, not against a switch)', low=0.0, high=1e6)
+    rate_smoothing: float = setting(0.03, "the tension changes' 1-norm smoothing", low=1e-6,
+                                    high=10.0)
+    move_weight: float = setting(0.0, 'weight on (u_0 - u_flown)^2, the first tension against '
+                                 'the one flown last step', low=0.0, high=1e6)
     trust: float = setting(2.0, 'largest change of a planned tension per step (the QP trusts '
                            'the linearisation that far)', low=1e-3, high=10.0)
 
@@ -152,17 +159,23 @@ class Nmpc(Law):
         super().reset()
         #: The plan (N,) and its node states (N + 1, n), p_0 the state it was made from.
         self.plan = self.nodes = None
-        #: DAQP's exit flag of the last QP.
+        #: DAQP's exit flag of the last QP; the tension flown last step (None: none yet).
         self.qp_status = 0
+        self.flown = None
+        #: The tensions the plans may take: [0, u_max], or the felt range the offset-free
+        #: wrapper sets ([phi(0), phi(u_max)]: what the actuator can make the plant feel).
+        self.felt_range = (0.0, self.u_max)
 
     # -- the RTI step -------------------------------------------------------------------------
 
     def compute(self, x):
         x = planar_state(x)
         if self.plan is None:
-            return self.cold_start(x)
+            self.flown = self.cold_start(x)
+            return self.flown
         # 1. shift: node j advanced one sample lies at the new grid's time j
-        shifted = shift_plan(self.plan, self.starts, self.durations, self.h)
+        shifted = np.clip(shift_plan(self.plan, self.starts, self.durations, self.h),
+                          *self.felt_range)
         nodes = self.map.step(self.nodes, np.r_[self.plan, self.plan[-1]])
         nodes[0] = x
         step = self.iterate(nodes, shifted) if np.all(np.isfinite(nodes)) else None
@@ -170,9 +183,11 @@ class Nmpc(Law):
             # A failed QP or a node off the map's domain: a cold start from here (from the
             # shifted plan if its rollout stays in the domain, else from the LQR plan)
             self.fallbacks += 1       # (once, whether the cold start then solves or not)
-            return self.cold_start(x, shifted, count=False)
+            self.flown = self.cold_start(x, shifted, count=False)
+            return self.flown
         self.plan, self.nodes = step
-        return float(self.plan[0])
+        self.flown = float(self.plan[0])
+        return self.flown
 
     def cold_start(self, x, plan=None, count=True):
         """The first step, and the step after a failure: `plan` (default: the LQR law's, also
@@ -192,7 +207,7 @@ class Nmpc(Law):
             if du is None:
                 break
             for _ in range(BACKTRACKS):
-                candidate = np.clip(plan + du, 0.0, self.u_max)
+                candidate = np.clip(plan + du, *self.felt_range)
                 candidate_nodes = self.rollout(x, candidate)
                 if in_domain(candidate_nodes):
                     break
@@ -222,7 +237,7 @@ class Nmpc(Law):
             for count in self.counts:
                 state = nodes[-1]
                 plan.append(float(np.clip(dynamics.EQUILIBRIUM_TENSION
-                                          - self.lqr_gain @ state, 0.0, self.u_max)))
+                                          - self.lqr_gain @ state, *self.felt_range)))
                 nodes.append(self.map.advance(state[None], np.array([plan[-1]]), [count])[0])
         return np.array(plan), self.floored(np.array(nodes))
 
@@ -246,7 +261,7 @@ class Nmpc(Law):
         du = self.solve(predicted, gains, plan)
         if du is None:
             return None
-        new_plan = np.clip(plan + du, 0.0, self.u_max)
+        new_plan = np.clip(plan + du, *self.felt_range)
         return new_plan, self.floored(predicted + gains @ (new_plan - plan))
 
     # -- the QP -------------------------------------------------------------------------------
@@ -272,8 +287,25 @@ class Nmpc(Law):
         linear = (scaled.T @ (root * y).ravel()
                   + 2.0 * s.r * self.durations * (plan - dynamics.EQUILIBRIUM_TENSION)
                   + 2.0 * terminal_gain.T @ (self.terminal @ y[-1]))
-        lower = [np.maximum(-plan, -s.trust)]
-        upper = [np.minimum(self.u_max - plan, s.trust)]
+        if s.rate_weight > 0.0:
+            # w sum_j m_u(u_j - u_{j-1}) (u_{-1} the tension flown last step), m_u the 1-norm
+            # smoothed by rate_smoothing, majorised at the plan as the stage cost is
+            difference = np.eye(n_nodes) - np.eye(n_nodes, k=-1)
+            target = np.zeros(n_nodes)
+            if self.flown is None:
+                difference[0, 0] = 0.0
+            else:
+                target[0] = self.flown
+            change = difference @ plan - target
+            rate = s.rate_weight / (2.0 * np.sqrt(change * change + s.rate_smoothing ** 2))
+            hessian += 2.0 * (difference.T * rate) @ difference
+            linear += 2.0 * difference.T @ (rate * change)
+        if s.move_weight > 0.0 and self.flown is not None:
+            hessian[0, 0] += 2.0 * s.move_weight
+            linear[0] += 2.0 * s.move_weight * (plan[0] - self.flown)
+        low, high = self.felt_range
+        lower = [np.maximum(low - plan, -s.trust)]
+        upper = [np.minimum(high - plan, s.trust)]
         rows = []
         if np.isfinite(self.theta_bound):
             theta = states[:, dynamics.THETA]

@@ -6,8 +6,8 @@ the observer's phi^-1 of it (u / d for a gain, u - d for an additive disturbance
 disturbance the steady-state target of the offset-free formulation (Pannocchia & Rawlings 2003;
 Maeder, Borrelli & Morari 2009) is the nominal one, x = 0 with u = 3 felt, so the target
 calculation reduces to that inversion and no constant gain or bias the observer converges to
-leaves an offset. A law with tension bounds of its own (koopman_mpc) gets them moved to the felt
-tensions the actuator can reach, [phi(0), phi(u_max)], so its constraints stay the real
+leaves an offset. A law with tension bounds of its own (koopman_mpc, the NMPC) gets them moved to
+the felt tensions the actuator can reach, [phi(0), phi(u_max)], so its constraints stay the real
 actuator's. The observer is told the clamped command that was sent (anti-windup for free).
 
 Why not an integrator on l - 1 for the linear laws: measured (README, offset-free control), the
@@ -97,10 +97,15 @@ class OffsetFree:
         # command): no tension, which the node reports as NON_FINITE_OUTPUT, not an exception.
         if not (np.all(np.isfinite(estimate)) and np.isfinite(self.observer.disturbance)):
             return float('nan')
-        if hasattr(self.law, 'input_range'):   # the law's own bounds: the felt range
+        if hasattr(self.law, 'input_range') or hasattr(self.law, 'felt_range'):
+            # the law's own bounds: the felt range (in the lifted input for koopman_mpc, in
+            # tension for the NMPC)
             low = max(self.observer.applied(0.0), 0.0)
             high = max(self.observer.applied(self.law.u_max), low + 1e-6)
-            self.law.input_range = [float(self.law.model.input_map(u)) for u in (low, high)]
+            if hasattr(self.law, 'input_range'):
+                self.law.input_range = [float(self.law.model.input_map(u)) for u in (low, high)]
+            else:
+                self.law.felt_range = (float(low), float(high))
         felt = self.law.compute(estimate if self.observer_settings.filtered_state else measured)
         command = min(max(self.observer.command_for(felt), 0.0), self.law.u_max)
         self.last_command = command   # the observer must know the clamped command
