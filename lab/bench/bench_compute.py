@@ -8,7 +8,7 @@ of the control period h = 0.01 tau (8.47 s of flight at the paper's orbit rate) 
 multiple of linear_lqr's. The bare laws by default; --offset-free wraps each in the
 disturbance observer, as the controller node builds them. The laws' defaults, or a settings
 preset (--preset tuned_ratio: koopman_mpc plans 30 steps there, against 3 by default). The
-first physics_nmpc build on a machine compiles its NLP (minutes, then cached); building is not
+first build of a law (a model loaded, a CasADi function made) is not
 timed.
 """
 

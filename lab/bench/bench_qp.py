@@ -6,10 +6,8 @@ tension bounds are active), then solves each recorded QP with every solver. Prin
 and p99 time per solve, the largest difference of the first move from DAQP's, and how many
 QPs had an active bound. Comparison: OSQP (the earlier solver of the law) against DAQP.
 
-`--law koopman_nmpc`: the same for koopman_nmpc's QP (the plan's change, its 1-norm slacks and
-swing slacks), recorded along its closed loops (fewer steps: ~0.1 s each), solved by Clarabel
-(its default) and quadprog (exact; its earlier solver). Comparison: quadprog against Clarabel,
-and the largest difference of any planned tension change from quadprog's.
+The NMPC's QP (the tension changes, dense, DAQP) is timed by bench/bench_nmpc.py and checked
+against quadprog by tests/control/test_nmpc.py.
 """
 
 import argparse
@@ -22,7 +20,6 @@ import quadprog
 import scipy.sparse as sparse
 
 from tsr_koopman_ctrl.control import closed_loop, KoopmanMpc
-from tsr_koopman_ctrl.control import koopman_nmpc
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, PAPER_START
 
 
@@ -95,55 +92,10 @@ def active(problem, x, tol=1e-7):
     return bool(np.any(binding))
 
 
-def record_nmpc(steps):
-    """(hessian, linear, rows, bounds, number of tension changes) of koopman_nmpc's QPs along
-    its loops from the comparison starts and, under a 0.4 swing bound, the paper's start."""
-    problems = []
-    runs = [({}, x0) for x0 in COMPARISON_STARTS] + [({'theta_max': 0.4}, PAPER_START)]
-    for settings, x0 in runs:
-        law = koopman_nmpc.KoopmanNmpc(**settings)
-        build = law.qp_problem
-
-        def recording_build(nodes, plan, build=build):
-            problems.append(build(nodes, plan) + (len(plan),))
-            return problems[-1][:4]
-        law.qp_problem = recording_build
-        closed_loop(law, x0, steps)
-    return problems
-
-
-def nmpc_main(steps):
-    problems = record_nmpc(steps)
-    print(f'{len(problems)} koopman_nmpc QPs ({problems[0][0].shape[0]} variables, '
-          f'{problems[0][2].shape[0]} rows), {steps} steps from each of 5 loops')
-    print(f"{'solver':10s} {'median us':>10s} {'p99 us':>10s} {'not solved':>10s} "
-          f"{'max |du - quadprog du|':>23s}")
-    results = {}
-    for name, solve in (('quadprog', koopman_nmpc.solve_quadprog),
-                        ('clarabel', koopman_nmpc.solve_clarabel)):
-        times, changes = [], []
-        for *problem, count in problems:
-            start = time.perf_counter()
-            solution = solve(*problem)
-            times.append(time.perf_counter() - start)
-            changes.append(np.full(count, np.nan) if solution is None else solution[:count])
-        times = np.array(times) * 1e6
-        results[name] = np.median(times), np.array(changes)
-        differences = np.abs(results[name][1] - results['quadprog'][1])
-        print(f'{name:10s} {np.median(times):10.1f} {np.percentile(times, 99):10.1f} '
-              f'{np.sum(np.isnan(results[name][1][:, 0])):10d} {np.nanmax(differences):23.2e}')
-    print(f"quadprog / clarabel (median): {results['quadprog'][0] / results['clarabel'][0]:.1f}x")
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--law', choices=('koopman_mpc', 'koopman_nmpc'), default='koopman_mpc',
-                        help="whose QPs (default koopman_mpc's)")
-    parser.add_argument('--steps', type=int, help='closed-loop steps per start (default 600; '
-                        '40 for koopman_nmpc)')
+    parser.add_argument('--steps', type=int, help='closed-loop steps per start (default 600)')
     args = parser.parse_args()
-    if args.law == 'koopman_nmpc':
-        return nmpc_main(args.steps or 40)
     problems = record(args.steps or 600)
     reference = timed(solve_daqp, problems)
     solvers = {'daqp': solve_daqp, 'osqp (warm, one setup)': osqp_solver(problems[0]),

@@ -28,7 +28,8 @@ def test_every_law_has_described_settings():
     ('koopman_mpc', {'horizon': 5.0}, 'koopman_mpc.horizon must be an integer, got 5.0'),
     ('linear_lqr', {'r': '1'}, "linear_lqr.r must be a number, got '1'"),
     ('linear_lqr', {'q': (1.0, True, 1.0, 1.0)}, 'linear_lqr.q must be 4 numbers'),
-    ('physics_nmpc', {'compile': 1}, 'physics_nmpc.compile must be true or false')])
+    ('physics_nmpc', {'trust': True}, 'physics_nmpc.trust must be a number, got True'),
+    ('koopman_nmpc', {'precision': 'float16'}, 'koopman_nmpc.precision must be one of')])
 def test_bad_settings_are_one_line_naming_the_setting(law, overrides, message):
     with pytest.raises(ValueError, match=message.replace('(', r'\(')) as error:
         make_controller(law, **overrides)

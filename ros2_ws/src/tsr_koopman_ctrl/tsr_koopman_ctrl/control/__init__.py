@@ -15,8 +15,7 @@ CLI flags and config files derive from them).
 from tsr_koopman_ctrl.control.fractional_pd import FractionalOrderPd  # noqa: F401
 from tsr_koopman_ctrl.control.koopman_lqr import KoopmanLqr  # noqa: F401
 from tsr_koopman_ctrl.control.koopman_mpc import KoopmanMpc  # noqa: F401
-from tsr_koopman_ctrl.control.koopman_nmpc import KoopmanNmpc  # noqa: F401
-from tsr_koopman_ctrl.control.physics_nmpc import PhysicsNmpc  # noqa: F401
+from tsr_koopman_ctrl.control.nmpc import KoopmanNmpc, PhysicsNmpc  # noqa: F401
 from tsr_koopman_ctrl.control.limiter import TensionLimiter  # noqa: F401
 from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr  # noqa: F401
 from tsr_koopman_ctrl.control.loop import closed_loop  # noqa: F401

@@ -6,8 +6,8 @@ the observer's phi^-1 of it (u / d for a gain, u - d for an additive disturbance
 disturbance the steady-state target of the offset-free formulation (Pannocchia & Rawlings 2003;
 Maeder, Borrelli & Morari 2009) is the nominal one, x = 0 with u = 3 felt, so the target
 calculation reduces to that inversion and no constant gain or bias the observer converges to
-leaves an offset. A law with tension bounds of its own (koopman_mpc) gets them moved to the felt
-tensions the actuator can reach, [phi(0), phi(u_max)], so its constraints stay the real
+leaves an offset. A law with tension bounds of its own (koopman_mpc, the NMPC) gets them moved to
+the felt tensions the actuator can reach, [phi(0), phi(u_max)], so its constraints stay the real
 actuator's. The observer is told the clamped command that was sent (anti-windup for free).
 
 Why not an integrator on l - 1 for the linear laws: measured (README, offset-free control), the

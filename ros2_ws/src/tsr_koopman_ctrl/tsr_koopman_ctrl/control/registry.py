@@ -4,10 +4,9 @@ from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.fractional_pd import FractionalOrderPd
 from tsr_koopman_ctrl.control.koopman_lqr import KoopmanLqr
 from tsr_koopman_ctrl.control.koopman_mpc import KoopmanMpc
-from tsr_koopman_ctrl.control.koopman_nmpc import KoopmanNmpc
+from tsr_koopman_ctrl.control.nmpc import KoopmanNmpc, PhysicsNmpc
 from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
-from tsr_koopman_ctrl.control.physics_nmpc import PhysicsNmpc
 from tsr_koopman_ctrl.control.settings import build
 
 #: The law the controller node, deploy and the main job run unless told otherwise.

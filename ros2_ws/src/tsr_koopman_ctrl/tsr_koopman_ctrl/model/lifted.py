@@ -26,6 +26,9 @@ def softplus(v):
 class MonotoneMap:
     """psi_uu(u) = a s + b + sum_j c_j tanh(d_j s + e_j), s = (u - mid) / half, a, c, d > 0."""
 
+    #: The floating-point type of the array evaluations (`LiftedModel.astype`).
+    dtype = np.float64
+
     def __init__(self, tensors, tension_range):
         low, high = tension_range
         self.mid, self.half = 0.5 * (low + high), 0.5 * (high - low)
@@ -40,13 +43,13 @@ class MonotoneMap:
                               self.shift.tolist()))
 
     def __call__(self, u):
-        s = (np.asarray(u, dtype=float)[..., None] - self.mid) / self.half
+        s = (np.asarray(u, dtype=self.dtype)[..., None] - self.mid) / self.half
         bumps = self.amplitude * np.tanh(self.steepness * s + self.shift)
         return self.slope * s[..., 0] + self.offset + bumps.sum(axis=-1)
 
     def derivative(self, u):
         """d psi_uu / du on an array (`slope_at` for a scalar)."""
-        s = (np.asarray(u, dtype=float)[..., None] - self.mid) / self.half
+        s = (np.asarray(u, dtype=self.dtype)[..., None] - self.mid) / self.half
         sech2 = 1.0 - np.tanh(self.steepness * s + self.shift) ** 2
         return (self.slope + (self.amplitude * self.steepness * sech2).sum(axis=-1)) / self.half
 
@@ -133,6 +136,9 @@ def elu(v):
 class LiftedModel:
     """psi_x, psi_u and its inverse, and the lifted (A, B, C), from a model directory."""
 
+    #: The floating-point type psi_x, psi_u, step and step_jacobians compute in (`astype`).
+    dtype = np.float64
+
     def __init__(self, tensors, config, metadata=None):
         self.path = None              # the directory it was loaded from, if any
         self.config = config
@@ -189,12 +195,31 @@ class LiftedModel:
                              f'{np.asarray(spec).tolist()}')
         return c.T @ q @ c
 
+    def astype(self, dtype):
+        """A copy that evaluates psi_x, psi_u, step and step_jacobians in `dtype` (e.g.
+        float32: about twice as fast on a CPU, ~1e-7 relative rounding); the other methods
+        are for float64 models only."""
+        import copy
+        cast = copy.copy(self)
+        cast.dtype = np.dtype(dtype).type
+        for name in ('mean', 'std', 'A', 'B'):
+            setattr(cast, name, getattr(self, name).astype(dtype))
+        for name in ('lift', 'input_gain'):
+            network = copy.copy(getattr(self, name))
+            network.layers = [(w.astype(dtype), b.astype(dtype)) for w, b in network.layers]
+            setattr(cast, name, network)
+        cast.input_map = copy.copy(self.input_map)
+        cast.input_map.dtype = cast.dtype
+        for name in ('amplitude', 'steepness', 'shift'):
+            setattr(cast.input_map, name, getattr(self.input_map, name).astype(dtype))
+        return cast
+
     def psi_x(self, x):
-        x = np.asarray(x, dtype=float)
+        x = np.asarray(x, dtype=self.dtype)
         return np.concatenate([x, self.lift((x - self.mean) / self.std)], axis=-1)
 
     def psi_ux(self, x):
-        x = np.asarray(x, dtype=float)
+        x = np.asarray(x, dtype=self.dtype)
         raw = self.input_gain((x - self.mean) / self.std)[..., 0]
         return self.config.min_input_gain + softplus(raw)
 
@@ -238,8 +263,8 @@ class LiftedModel:
     def step_jacobians(self, x, u):
         """The one-step map on a batch and its derivatives, analytic (forward mode through the
         networks): (x+ (N, n), d x+ / d x (N, n, n), d x+ / d u (N, n))."""
-        x = np.atleast_2d(np.asarray(x, dtype=float))
-        u = np.asarray(u, dtype=float)
+        x = np.atleast_2d(np.asarray(x, dtype=self.dtype))
+        u = np.asarray(u, dtype=self.dtype)
         n = self.n
         # d ((x - mean) / std) / dx, one direction per state component.
         directions = np.broadcast_to(np.diag(1.0 / self.std), (len(x), n, n))

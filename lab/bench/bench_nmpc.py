@@ -1,0 +1,159 @@
+"""Where the NMPC's step goes, both maps, offset-free included, beside a yardstick.
+
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python lab/bench/bench_nmpc.py [--steps 400]
+        [--start 0] [--set koopman_nmpc.model=models/koopman_retrieval] [--bare]
+
+Runs each law as deployed (`make_controller`: the offset-free observer unless --bare) on the
+nominal plant from a start (default the paper's), times every call of each part of the step
+and prints, per step, the median and p99 (the first step, the cold start, left out):
+
+- shift:     the previous plan's nodes advanced one sample (one batched map call, N + 1 rows);
+- intervals: every interval simulated from its node in one batch with its sensitivities
+             (`map.interval`; ~10 batched map calls on the default grid);
+- condense:  the nodes affine in the tension changes;
+- QP:        assembly and DAQP's solve;
+- step:      the whole `compute`, the observer and the wrapper included;
+- other:     step less the parts (observer, shift of the plan, bookkeeping).
+
+Then, on the nodes and plan of the last step, the map alone (`advance`: the simulation without
+derivatives), `interval` with exact sensitivities and with the held one-step Jacobian
+('start'). The yardstick, timed in the same run before and after each law: one scalar numpy
+RK4 plant step of 20 substeps (`tsr_sim.dynamics.rk4_step(x, u, 0.01, 20)` on a 1-D state).
+Every time is also given as a multiple of it (the machine's speed varies from run to run).
+"""
+
+import argparse
+import time
+
+import numpy as np
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control import closed_loop, make_controller, nmpc
+from tsr_koopman_ctrl.control.registry import law_class
+from tsr_koopman_ctrl.control.settings import parse_value
+from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS
+
+PARTS = ('shift', 'intervals', 'condense', 'QP')
+YARDSTICK_STATE = np.array([0.0, 0.0, -0.99, 0.5])
+
+
+def yardstick(repeats=400):
+    """Seconds of one yardstick step: the median of 8 batches."""
+    batches = []
+    for _ in range(8):
+        start = time.perf_counter()
+        for _ in range(repeats // 8):
+            dynamics.rk4_step(YARDSTICK_STATE, 3.0, 0.01, 20)
+        batches.append((time.perf_counter() - start) / (repeats // 8))
+    return float(np.median(batches))
+
+
+def instrument(law, spent):
+    """Wrap the parts so each adds its time to the current step's entry of `spent`."""
+    core = getattr(law, 'law', law)
+    inside = []     # map.step inside map.interval is the intervals' time, not the shift's
+
+    def timed(name, function):
+        def run(*args, **kwargs):
+            start = time.perf_counter()
+            inside.append(name)
+            try:
+                return function(*args, **kwargs)
+            finally:
+                inside.pop()
+                if spent and not (name == 'shift' and 'intervals' in inside):
+                    spent[-1][name] += time.perf_counter() - start
+        return run
+
+    core.map.step = timed('shift', core.map.step)
+    core.map.interval = timed('intervals', core.map.interval)
+    core.solve = timed('QP', core.solve)
+    compute = timed('step', law.compute)
+
+    def step(x):
+        spent.append(dict.fromkeys(PARTS + ('step',), 0.0))
+        return compute(x)
+    law.compute = step
+    return core
+
+
+def timed_call(function, repeats=50):
+    function()
+    start = time.perf_counter()
+    for _ in range(repeats):
+        function()
+    return (time.perf_counter() - start) / repeats
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--steps', type=int, default=400)
+    parser.add_argument('--start', type=int, default=0,
+                        help='index into COMPARISON_STARTS + HELD_OUT_STARTS')
+    parser.add_argument('--law', nargs='+', default=['physics_nmpc', 'koopman_nmpc'])
+    parser.add_argument('--set', action='append', default=[], metavar='LAW.NAME=VALUE')
+    parser.add_argument('--bare', action='store_true', help='no offset-free observer')
+    args = parser.parse_args(argv)
+    start = (COMPARISON_STARTS + HELD_OUT_STARTS)[args.start]
+    overrides = {law: {} for law in args.law}
+    for item in args.set:
+        key, _, text = item.partition('=')
+        law, _, name = key.partition('.')
+        if law in overrides:
+            overrides[law][name] = parse_value(law_class(law).Settings, name, text)
+    # condense is a module function: timed through the module
+    spent = []
+    condense = nmpc.condense
+
+    def timed_condense(*a):
+        begin = time.perf_counter()
+        try:
+            return condense(*a)
+        finally:
+            if spent:
+                spent[-1]['condense'] += time.perf_counter() - begin
+    nmpc.condense = timed_condense
+
+    print(f'start {list(start)}, {args.steps} steps on the nominal plant, '
+          f'{"bare" if args.bare else "offset-free (default observer)"}; per step, '
+          'the first (cold) step left out')
+    for law_name in args.law:
+        before = yardstick()
+        law = make_controller(law_name, observer={'disturbance': 'none'} if args.bare
+                              else None, **overrides[law_name])
+        spent.clear()
+        core = instrument(law, spent)
+        closed_loop(law, start, args.steps)
+        after = yardstick()
+        yard = 0.5 * (before + after)
+        steps = spent[1:]
+        table = {name: np.array([s[name] for s in steps]) for name in PARTS + ('step',)}
+        table['other'] = table['step'] - sum(table[name] for name in PARTS)
+        settings = core.settings
+        extra = (f", sensitivities {settings.sensitivities}, {settings.precision}"
+                 if law_name == 'koopman_nmpc' else '')
+        print(f'\n{law_name} ({len(core.durations)} intervals, {core.counts.sum()} samples'
+              f'{extra}); yardstick {yard * 1e3:.3f} ms (before {before * 1e3:.3f}, after '
+              f'{after * 1e3:.3f}); fallbacks {law.fallbacks}')
+        print(f'{"part":<12}{"median ms":>10}{"p99 ms":>10}{"x yard":>8}{"p99 x yard":>12}')
+        for name in PARTS + ('other', 'step'):
+            values = table[name] * 1e3
+            median, p99 = np.median(values), np.percentile(values, 99)
+            print(f'{name:<12}{median:>10.3f}{p99:>10.3f}{median / yard / 1e3:>8.1f}'
+                  f'{p99 / yard / 1e3:>12.1f}')
+        # the map alone and the two kinds of sensitivities, on the last step's nodes
+        the_map = core.map
+        interval = type(the_map).interval.__get__(the_map)     # not the timed wrapper
+        nodes, plan = core.nodes[:-1], core.plan
+        simulate = timed_call(lambda: the_map.advance(nodes, plan, core.counts))
+        exact = timed_call(lambda: interval(nodes, plan, core.counts, exact=True), 20)
+        held = timed_call(lambda: interval(nodes, plan, core.counts, exact=False))
+        print(f'map alone (advance, no derivatives) {simulate * 1e3:.3f} ms '
+              f'(x{simulate / yard:.1f}); interval with exact sensitivities '
+              f'{exact * 1e3:.3f} ms (x{exact / yard:.1f}); with the held one-step Jacobian '
+              f'{held * 1e3:.3f} ms (x{held / yard:.1f})')
+    nmpc.condense = condense
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,408 @@
+"""One nonlinear MPC, two models: real-time iteration (RTI) with multiple shooting.
+
+`physics_nmpc` and `koopman_nmpc` are the same law; they differ only in the map x+ = f(x, u)
+they plan with (`control/prediction_maps.py`): the planar equations (`PhysicsMap`, RK4 with
+substeps) or the relifted learned model x+ = C (A psi_x(x) + B psi_u(x, u)) (`LearnedMap`).
+
+Problem (every step, from the measured state x): tensions u_j piecewise constant on a grid of
+N intervals (four lead ones of h, 2h, 3h, 4h, so the move that is optimised is the move that is
+flown, then `interval` up to `horizon`: 39 intervals, 360 samples, 3.6 tau by default), node
+states p_0 = x, p_1..p_N on the map,
+
+    min  sum_j d_j (sum_i q_i m(y_{j+1,i}) + r (u_j - 3)^2) + y_N' P y_N
+    s.t. |theta_j| <= theta_max - margin,  l_j - 1 <= overshoot_max,  l_j >= LENGTH_FLOOR
+         (soft, every node), 0 <= u_j <= u_max
+
+with y = [theta, theta', ln l, l'] (a swing bound limits l' / l, so progress is exponential in
+l), m(y) = sqrt(y^2 + eps^2) a smoothed 1-norm (near time-optimal: it keeps pulling on small
+errors where a quadratic fades), P the continuous LQR cost-to-go at the target.
+
+One RTI step (Diehl, Bock, Schloeder 2005), multiple shooting:
+
+1. shift: every node of the previous plan advanced one sample on the map (one batched call;
+   node j then sits at the new grid's time j), the tensions shifted by h, p_0 := x;
+2. simulate: every interval from its node under its tension, all in one batch (`map.interval`,
+   ~10 batched map calls on the default grid instead of 360 sequential ones), with the
+   sensitivities A_j = d end_j / d p_j, b_j = d end_j / d u_j; the defects end_j - p_{j+1}
+   stay in the QP as affine terms, so no single-shooting rollout (whose open-loop-unstable
+   length drifts off) is ever flown;
+3. condense: the nodes are affine in the tension changes du, p = p_bar + G du
+   (p_bar_{j+1} = end_j + A_j (p_bar_j - p_j), G_{j+1} = A_j G_j + b_j e_j');
+4. one dense QP in the N tension changes (DAQP, active set): the smoothed 1-norm replaced by
+   its majorising quadratic at p_bar (m(y) <= m(y_bar) + (y^2 - y_bar^2) / (2 m(y_bar)), equal
+   gradient, so a fixed point of the iteration is a stationary point of the problem), ln l
+   linearised, |du| <= trust, the node bounds soft (DAQP's soft constraints, a quadratic
+   penalty 1 / SOFT_RHO);
+5. the plan moves by du, the nodes to p_bar + G du, and the first tension is flown.
+
+Also in the QP: the tension bounds are the felt range the offset-free wrapper sets
+(`felt_range`), and a total-variation term rate_weight * sum_j m_u(u_j - u_{j-1}) (u_{-1} the
+tension flown last step, m_u the 1-norm smoothed by rate_smoothing, majorised the same way):
+without it the default observer, which reads a 0.05-tau actuator lag as a fast gain change,
+and this law's high gain near the target limit-cycle (NMPC_RESULTS.md, target 4).
+
+The first step, and a step whose QP fails or whose nodes leave the domain (a fallback), is a
+cold start: the linearised LQR law (Q = I, R = 1) flown on the map, refined by up to
+COLD_ITERATIONS QP steps in single shooting with backtracking (`cold_start`).
+"""
+
+import dataclasses
+from typing import ClassVar
+
+import numpy as np
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control.law import Law, planar_state
+from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
+from tsr_koopman_ctrl.control.prediction_maps import LearnedMap, PhysicsMap
+from tsr_koopman_ctrl.control.settings import LawSettings, setting
+
+#: Lead intervals in units of h (the first is h: the optimised move is the flown one).
+LEAD_STEPS = (1, 2, 3, 4)
+#: theta_max at or above this (a swing past pi is a tumble): no swing rows in the QP.
+NO_SWING_BOUND = np.pi
+#: The swing-bound margin for theta between nodes (the former physics NMPC's).
+THETA_MARGIN = 0.003
+#: The plans keep the predicted tether this long at least (half the paper's initial length):
+#: the learned map is not trusted on a tether about to be reeled in completely.
+LENGTH_FLOOR = 0.005
+#: QP steps of the cold start (single shooting, from the LQR plan), and halvings of a step
+#: whose rollout leaves the domain before the step is refused.
+COLD_ITERATIONS = 5
+BACKTRACKS = 4
+#: DAQP's soft-constraint weight (a violation s costs s^2 / (2 SOFT_RHO)) and the QP's
+#: regularisation of du (a strictly convex QP whatever r).
+SOFT_RHO = 1e-6
+REGULARISATION = 1e-8
+#: The default model of koopman_nmpc: koopman_default fine-tuned with retrieval data too
+#: (models/README.md): a fast deployment brakes by reeling the tether back in.
+MODEL = 'koopman_retrieval'
+
+
+def prediction_grid(h, horizon, interval):
+    """Interval lengths (tau): the lead ones, then `interval` up to about `horizon`."""
+    lead = h * np.array(LEAD_STEPS, dtype=float)
+    rest = max(int(round((horizon - lead.sum()) / interval)), 1)
+    return np.r_[lead, np.full(rest, interval)]
+
+
+def shift_plan(plan, starts, durations, age):
+    """A plan's tensions (piecewise constant on the grid `starts`, `durations`) as seen `age`
+    tau after it was made, on the same grid: each new interval's tension the old plan's mean
+    over it (the last tension held past the horizon). The mean, not the value at the
+    interval's middle: that would move every switch on the long intervals one step later
+    each step, a lag the next QP step corrects only in part."""
+    ends = starts + durations
+    times = np.r_[starts, ends[-1], ends[-1] + age + durations[-1]]
+    integral = np.r_[0.0, np.cumsum(np.r_[plan, plan[-1]] * np.diff(times))]
+    lows, highs = starts + age, ends + age
+    return (np.interp(highs, times, integral) - np.interp(lows, times, integral)) / durations
+
+
+@dataclasses.dataclass(frozen=True)
+class NmpcSettings(LawSettings):
+    """The settings both backends share, declared once."""
+    horizon: float = setting(3.6, 'prediction horizon [tau]', low=0.2, high=20.0)
+    interval: float = setting(0.1, 'prediction interval after the four short lead ones [tau], '
+                              'a multiple of the step h', low=0.01, high=1.0)
+    # 0.8 by default: the swing bound every law is tuned and compared under (lab/tune.py).
+    theta_max: float = setting(0.8, 'bound on |theta| at every prediction node, soft with a '
+                               'stiff penalty [rad]; >= pi: no bound', low=0.01, high=3.2)
+    # The former koopman_nmpc's weights from its 101-trial frontier-ratio search
+    # (docs/tuning/koopman_nmpc; config/tuned_ratio.yaml), for both maps.
+    q: tuple = setting((4.71, 4.798, 8.406, 7.511), "stage weights on the smoothed |.| of "
+                       "[theta, theta', ln l, l']", low=0.0, tune=(1e-1, 1e2, 'log'))
+    r: float = setting(0.07805, 'stage weight on (u - 3)^2', low=1e-9,
+                       tune=(1e-3, 1e1, 'log'))
+    overshoot_max: float = setting(0.005, 'bound on l - 1 at every prediction node (soft); '
+                                   '>= 10: none', low=0.0, high=10.0)
+    smoothing: float = setting(0.01, "the 1-norm's smoothing eps in sqrt(y^2 + eps^2)",
+                               low=1e-6, high=1.0)
+    rate_weight: float = setting(0.06, 'weight on the smoothed |u_j - u_{j-1}| along the plan, '
+                                 'u_{-1} the tension flown last step (total variation: '
+                                 'against chattering, not against a switch)', low=0.0, high=1e6)
+    rate_smoothing: float = setting(0.03, "the tension changes' 1-norm smoothing", low=1e-6,
+                                    high=10.0)
+    move_weight: float = setting(0.0, 'weight on (u_0 - u_flown)^2, the first tension against '
+                                 'the one flown last step', low=0.0, high=1e6)
+    trust: float = setting(2.0, 'largest change of a planned tension per step (the QP trusts '
+                           'the linearisation that far)', low=1e-3, high=10.0)
+
+
+class Nmpc(Law):
+    """The RTI machinery (module docstring); a subclass gives the map (`make_map`)."""
+
+    Settings = NmpcSettings
+    #: Exact interval sensitivities (False: the map may approximate them, `MapBase.interval`).
+    exact_sensitivities = True
+
+    def __init__(self, settings=None, **kwargs):
+        super().__init__(settings, **kwargs)
+        s = self.settings
+        self.map = self.make_map()
+        if abs(self.map.h - self.h) > 1e-12:
+            raise ValueError(f'{self.name}: the map steps {self.map.h:g} tau, the loop '
+                             f'h = {self.h:g}')
+        if s.horizon <= self.h * sum(LEAD_STEPS):
+            raise ValueError(f'{self.name}.horizon must exceed the lead intervals '
+                             f'({self.h * sum(LEAD_STEPS):g} tau), got {s.horizon}')
+        self.durations = prediction_grid(self.h, s.horizon, s.interval)
+        self.counts = np.rint(self.durations / self.h).astype(int)
+        if not np.allclose(self.counts * self.h, self.durations) or np.any(self.counts < 1):
+            raise ValueError(f'{self.name}.interval must be a multiple of h = {self.h:g}, got '
+                             f'{s.interval}')
+        self.starts = np.r_[0.0, np.cumsum(self.durations)[:-1]]
+        self.q = np.asarray(s.q, dtype=float)
+        self.terminal = continuous_lqr_gain(self.q, s.r)[1]
+        self.lqr_gain = continuous_lqr_gain(np.ones(4), 1.0)[0]
+        self.theta_bound = (np.inf if s.theta_max >= NO_SWING_BOUND
+                            else s.theta_max - THETA_MARGIN)
+        self.reset()
+
+    def make_map(self):
+        raise NotImplementedError
+
+    def reset(self):
+        super().reset()
+        #: The plan (N,) and its node states (N + 1, n), p_0 the state it was made from.
+        self.plan = self.nodes = None
+        #: DAQP's exit flag of the last QP; the tension flown last step (None: none yet).
+        self.qp_status = 0
+        self.flown = None
+        #: The tensions the plans may take: [0, u_max], or the felt range the offset-free
+        #: wrapper sets ([phi(0), phi(u_max)]: what the actuator can make the plant feel).
+        self.felt_range = (0.0, self.u_max)
+
+    def bound_tension(self, low, high):
+        """The offset-free wrapper's felt range: the plans stay within what the actuator can
+        make the plant feel."""
+        self.felt_range = (float(low), float(high))
+
+    # -- the RTI step -------------------------------------------------------------------------
+
+    def compute(self, x):
+        x = planar_state(x)
+        if self.plan is None:
+            self.flown = self.cold_start(x)
+            return self.flown
+        # 1. shift: node j advanced one sample lies at the new grid's time j
+        shifted = np.clip(shift_plan(self.plan, self.starts, self.durations, self.h),
+                          *self.felt_range)
+        nodes = self.map.step(self.nodes, np.r_[self.plan, self.plan[-1]])
+        nodes[0] = x
+        step = self.iterate(nodes, shifted) if np.all(np.isfinite(nodes)) else None
+        if step is None:
+            # A failed QP or a node off the map's domain: a cold start from here (from the
+            # shifted plan if its rollout stays in the domain, else from the LQR plan)
+            self.fallbacks += 1       # (once, whether the cold start then solves or not)
+            self.flown = self.cold_start(x, shifted, count=False)
+            return self.flown
+        self.plan, self.nodes = step
+        self.flown = float(self.plan[0])
+        return self.flown
+
+    def cold_start(self, x, plan=None, count=True):
+        """The first step, and the step after a failure: `plan` (default: the LQR law's, also
+        where `plan`'s rollout leaves the domain) refined by up to COLD_ITERATIONS QP steps in
+        single shooting: after each, the new plan is rolled out on the map from x, its step
+        halved (up to BACKTRACKS times) until the rollout stays in the domain. The multiple-
+        shooting steps that follow start from a plan whose nodes have no defects. If no QP
+        step succeeds, the plan is flown as it is (a fallback, counted if `count`)."""
+        nodes = None if plan is None else self.rollout(x, plan)
+        if nodes is None or not in_domain(nodes):
+            plan, nodes = self.lqr_plan(x)
+        solved = False
+        for _ in range(COLD_ITERATIONS):
+            end, a, b = self.map.interval(nodes[:-1], plan, self.counts,
+                                          exact=self.exact_sensitivities)
+            du = self.solve(*condense(nodes, end, a, b), plan)
+            if du is None:
+                break
+            for _ in range(BACKTRACKS):
+                candidate = np.clip(plan + du, *self.felt_range)
+                candidate_nodes = self.rollout(x, candidate)
+                if in_domain(candidate_nodes):
+                    break
+                du = 0.5 * du
+            else:
+                break
+            plan, nodes, solved = candidate, candidate_nodes, True
+        self.fallbacks += count and not solved
+        self.plan, self.nodes = plan, nodes
+        return float(plan[0])
+
+    def rollout(self, x, plan):
+        """The node states (N + 1, n) of `plan` flown on the map from x (one interval at a
+        time: sequential, for the cold start only)."""
+        nodes = [np.asarray(x, dtype=float)]
+        with np.errstate(all='ignore'):
+            for tension, count in zip(plan, self.counts):
+                nodes.append(self.map.advance(nodes[-1][None], np.array([tension]),
+                                              [count])[0])
+        return np.array(nodes)
+
+    def lqr_plan(self, x):
+        """The linearised LQR law (Q = I, R = 1) flown on the map over the grid, its tension
+        held over each interval: (plan (N,), node states (N + 1, n))."""
+        nodes, plan = [np.asarray(x, dtype=float)], []
+        with np.errstate(all='ignore'):
+            for count in self.counts:
+                state = nodes[-1]
+                plan.append(float(np.clip(dynamics.EQUILIBRIUM_TENSION
+                                          - self.lqr_gain @ state, *self.felt_range)))
+                nodes.append(self.map.advance(state[None], np.array([plan[-1]]), [count])[0])
+        return np.array(plan), self.floored(np.array(nodes))
+
+    def floored(self, nodes):
+        """Node states with l >= LENGTH_FLOOR and finite (a plan's linear prediction may reel
+        the tether in past it; the map is not evaluated there)."""
+        nodes = np.nan_to_num(nodes, nan=0.0, posinf=10.0, neginf=-10.0)
+        np.maximum(nodes[:, dynamics.LENGTH_OFFSET], LENGTH_FLOOR - 1.0,
+                   out=nodes[:, dynamics.LENGTH_OFFSET])
+        return nodes
+
+    def iterate(self, nodes, plan):
+        """One RTI step from nodes (N + 1, n) (nodes[0] the measured state) and plan (N,):
+        the new (plan, nodes), or None if the QP fails or an interval leaves the domain."""
+        with np.errstate(all='ignore'):
+            end, a, b = self.map.interval(nodes[:-1], plan, self.counts,
+                                          exact=self.exact_sensitivities)
+        if not (in_domain(end) and np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            return None
+        predicted, gains = condense(nodes, end, a, b)
+        du = self.solve(predicted, gains, plan)
+        if du is None:
+            return None
+        new_plan = np.clip(plan + du, *self.felt_range)
+        return new_plan, self.floored(predicted + gains @ (new_plan - plan))
+
+    # -- the QP -------------------------------------------------------------------------------
+
+    def qp_problem(self, predicted, gains, plan):
+        """(hessian, linear, rows, lower, upper, soft) of the QP in du (module docstring):
+        min 1/2 du' H du + linear' du s.t. lower[:N] <= du <= upper[:N] and
+        lower[N:] <= rows du <= upper[N:], the rows marked `soft` soft."""
+        s, n_nodes = self.settings, len(plan)
+        states, g = predicted[1:], gains[1:]
+        length = np.maximum(1.0 + states[:, dynamics.LENGTH_OFFSET], 1e-6)
+        y = states.copy()
+        y[:, dynamics.LENGTH_OFFSET] = np.log(length)
+        y_gains = g.copy()
+        y_gains[:, dynamics.LENGTH_OFFSET] /= length[:, None]
+        # The majoriser's weights: d_j q_i / (2 m(y_bar)) on y^2.
+        weight = self.durations[:, None] * self.q / (2.0 * np.sqrt(y * y + s.smoothing ** 2))
+        root = np.sqrt(2.0 * weight)
+        scaled = (root[:, :, None] * y_gains).reshape(-1, n_nodes)
+        terminal_gain = y_gains[-1]
+        hessian = scaled.T @ scaled + 2.0 * terminal_gain.T @ self.terminal @ terminal_gain
+        hessian[np.diag_indices(n_nodes)] += 2.0 * s.r * self.durations + REGULARISATION
+        linear = (scaled.T @ (root * y).ravel()
+                  + 2.0 * s.r * self.durations * (plan - dynamics.EQUILIBRIUM_TENSION)
+                  + 2.0 * terminal_gain.T @ (self.terminal @ y[-1]))
+        if s.rate_weight > 0.0:
+            # w sum_j m_u(u_j - u_{j-1}) (u_{-1} the tension flown last step), m_u the 1-norm
+            # smoothed by rate_smoothing, majorised at the plan as the stage cost is
+            difference = np.eye(n_nodes) - np.eye(n_nodes, k=-1)
+            target = np.zeros(n_nodes)
+            if self.flown is None:
+                difference[0, 0] = 0.0
+            else:
+                target[0] = self.flown
+            change = difference @ plan - target
+            rate = s.rate_weight / (2.0 * np.sqrt(change * change + s.rate_smoothing ** 2))
+            hessian += 2.0 * (difference.T * rate) @ difference
+            linear += 2.0 * difference.T @ (rate * change)
+        if s.move_weight > 0.0 and self.flown is not None:
+            hessian[0, 0] += 2.0 * s.move_weight
+            linear[0] += 2.0 * s.move_weight * (plan[0] - self.flown)
+        low, high = self.felt_range
+        lower = [np.maximum(low - plan, -s.trust)]
+        upper = [np.minimum(high - plan, s.trust)]
+        rows = []
+        if np.isfinite(self.theta_bound):
+            theta = states[:, dynamics.THETA]
+            rows.append(g[:, dynamics.THETA])
+            lower.append(-self.theta_bound - theta)
+            upper.append(self.theta_bound - theta)
+        offset = states[:, dynamics.LENGTH_OFFSET]
+        rows.append(g[:, dynamics.LENGTH_OFFSET])
+        lower.append(LENGTH_FLOOR - 1.0 - offset)
+        upper.append((s.overshoot_max if s.overshoot_max < 10.0 else np.inf) - offset)
+        rows = np.vstack(rows)
+        soft = np.r_[np.zeros(n_nodes, dtype=bool), np.ones(len(rows), dtype=bool)]
+        return hessian, linear, rows, np.concatenate(lower), np.concatenate(upper), soft
+
+    def solve(self, predicted, gains, plan):
+        """The QP's du by DAQP, or None if it fails."""
+        import daqp
+        hessian, linear, rows, lower, upper, soft = self.qp_problem(predicted, gains, plan)
+        sense = np.where(soft, 8, 0).astype(np.int32)
+        du, _, status, _ = daqp.solve(hessian, linear, rows, upper, lower, sense,
+                                      rho_soft=SOFT_RHO)
+        self.qp_status = int(status)
+        if status < 1 or not np.all(np.isfinite(du)):
+            return None
+        return np.asarray(du)
+
+
+def in_domain(nodes):
+    """True if node states (..., n) are finite and keep the tether longer than LENGTH_FLOOR."""
+    return bool(np.all(np.isfinite(nodes))
+                and np.all(nodes[..., dynamics.LENGTH_OFFSET] > LENGTH_FLOOR - 1.0))
+
+
+def condense(nodes, end, a, b):
+    """The nodes affine in the tension changes: (p_bar (N + 1, n), G (N + 1, n, N)) with
+    p_bar_0 = nodes_0, G_0 = 0, p_bar_{j+1} = end_j + A_j (p_bar_j - nodes_j),
+    G_{j+1} = A_j G_j + b_j e_j'."""
+    n_nodes, n = a.shape[0], a.shape[1]
+    predicted = np.empty((n_nodes + 1, n))
+    gains = np.zeros((n_nodes + 1, n, n_nodes))
+    predicted[0] = nodes[0]
+    for j in range(n_nodes):
+        predicted[j + 1] = end[j] + a[j] @ (predicted[j] - nodes[j])
+        gains[j + 1, :, :j] = a[j] @ gains[j, :, :j]
+        gains[j + 1, :, j] = b[j]
+    return predicted, gains
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsNmpcSettings(NmpcSettings):
+    law: ClassVar[str] = 'physics_nmpc'
+
+
+class PhysicsNmpc(Nmpc):
+    """The NMPC on the planar equations (`PhysicsMap`): the law a GNC engineer would fly."""
+
+    name = 'physics_nmpc'
+    Settings = PhysicsNmpcSettings
+
+    def make_map(self):
+        return PhysicsMap(self.h)
+
+
+@dataclasses.dataclass(frozen=True)
+class KoopmanNmpcSettings(NmpcSettings):
+    law: ClassVar[str] = 'koopman_nmpc'
+    model: str = setting(MODEL, 'model directory, or the name of a shipped model')
+    sensitivities: str = setting('start', "each interval's sensitivities: 'exact' (the "
+                                 "one-step Jacobians at every sample, chained) or 'start' "
+                                 "(the one at the interval's start, held: one batched "
+                                 'Jacobian a step instead of ~10)', choices=('exact', 'start'))
+    precision: str = setting('float32', "the map's floating-point type: 'float32' about "
+                             'halves its time (~1e-7 relative rounding)',
+                             choices=('float64', 'float32'))
+
+
+class KoopmanNmpc(Nmpc):
+    """The NMPC on the relifted learned model (`LearnedMap`)."""
+
+    name = 'koopman_nmpc'
+    Settings = KoopmanNmpcSettings
+
+    def make_map(self):
+        from tsr_koopman_ctrl.control.koopman_lqr import load_model
+        #: The learned model (the offset-free observer predicts with it too).
+        self.model = load_model(self.settings.model)
+        self.exact_sensitivities = self.settings.sensitivities == 'exact'
+        return LearnedMap(self.model, dtype=self.settings.precision)
