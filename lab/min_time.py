@@ -4,7 +4,7 @@ For a start x0 the frontier T*(theta_max) is the least time (tau) in which any t
 0 <= u <= u_max brings the plant to the deployed equilibrium x = 0 (zero rates) while
 |theta| <= theta_max on the way. A law that settles in t_s with a measured swing s is then
 t_s / T*(s) from optimal (evaluation/frontier.py reads the shipped table this module computes;
-tools/frontier.py recomputes it).
+lab/frontier.py recomputes it).
 
 Method: direct multiple shooting with a free final time T: N intervals, the tension constant on
 each, RK4 inside (the simulator's own integrator, so a returned plan replays exactly through
