@@ -2,7 +2,7 @@
 from the comparison and the held-out starts, scored against the minimum-time frontier.
 ROS-free (the DDS loop is step-identical).
 
-    python -m lab.compare [--law ...] [--out docs/comparison]
+    python -m lab.compare [--law ...] [--out lab/results/comparison]
 
 Every law runs offset-free (the default observer) with its settings from a preset: 'tuned' (the
 laws' defaults, set by lab/tune.py on the mean settle time), 'tuned_ratio' (config/
@@ -44,7 +44,7 @@ def run(law, settings, start, steps):
 
 #: Laws whose defaults were not set by tuning (the NMPC's are hand-picked; koopman_nmpc takes
 #: them; both are tuned only for the 'tuned_ratio' preset, koopman_nmpc's search in
-#: docs/tuning/koopman_nmpc): where a preset does not name them, their defaults appear once,
+#: docs/tuning.md): where a preset does not name them, their defaults appear once,
 #: as 'defaults'.
 NOT_TUNED = {'physics_nmpc', 'koopman_nmpc'}
 

@@ -193,7 +193,7 @@ class Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
-def main(argv=None):
+def parser():
     p = Parser(prog='frontier', description=__doc__.split('\n\n')[0])
     p.add_argument('--start', type=int, nargs='+', metavar='I',
                    help=f'start indices 0..{len(STARTS) - 1} (default: all)')
@@ -201,7 +201,11 @@ def main(argv=None):
                    help='table to write (an existing one keeps its other starts)')
     p.add_argument('--show', nargs='?', const=str(TABLE_PATH), metavar='PATH',
                    help='print a table as markdown (default: the shipped one) and exit')
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
     try:
         if args.show is not None:
             print(markdown(read_table(args.show)), end='')

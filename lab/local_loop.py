@@ -4,7 +4,7 @@ A law's settle time into the 1% zone is set, from starts near the target, by its
 least damped closed-loop modes. Those are the eigenvalues of the plant's one-step map closed
 with the law's gain at the target (both linearised by central differences), a figure GNC
 engineers read before any simulation: e.g. the cross-tuned Koopman-LQR's least damped pair is
-at zeta 0.22, which the tuning starts (all at theta = 0) barely excite (docs/comparison/README.md).
+at zeta 0.22, which the tuning starts (all at theta = 0) barely excite (docs/comparison.md).
 """
 
 import numpy as np

@@ -82,13 +82,17 @@ def markdown(rows):
     return '\n'.join(lines) + '\n'
 
 
-def main(argv=None):
+def parser():
     p = argparse.ArgumentParser(prog='robustness', description=__doc__.split('\n\n')[0])
     p.add_argument('--law', nargs='+', default=['koopman_mpc', 'linear_lqr'],
                    choices=sorted(CONTROLLERS))
     p.add_argument('--steps', type=cli.STEPS, default=2000)
     p.add_argument('--out', default=os.path.join('out', 'robustness'), type=cli.output_dir)
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
     rows = grid(args.law, args.steps)
     text = markdown(rows)
     write_results(args.out, 'robustness', rows, text)

@@ -25,7 +25,7 @@ it up to --trials in total. At the end the best settings are scored on the held-
 (`HELD_OUT_STARTS`), which the tuning never saw, in --jobs processes, and written to
 <out>/<study>.json and .md.
 `--fix` holds a setting out of the search: koopman_lqr's q only counts with state_weight
-'state', and a joint search samples that form a few times only (4 of 60 trials in docs/tuning).
+'state', and a joint search samples that form a few times only (4 of 60 trials, docs/tuning.md).
 `--also` adds a setting the default search leaves out: `q_cross`, the cross terms of the
 quadratic-cost laws' state weight (six more dimensions).
 """

@@ -7,8 +7,8 @@ import pytest
 
 #: Markdown links and images: [text](target) and ![alt](target), the target up to ')' or space.
 LINK = re.compile(r'!?\[[^\]]*\]\(([^)\s]+)\)')
-DOCUMENTS = sorted([ROOT / 'README.md', *ROOT.glob('docs/**/*.md'), *ROOT.glob('models/**/*.md'),
-                    *ROOT.glob('bench/**/*.md')])
+DOCUMENTS = sorted([ROOT / 'README.md', ROOT / 'CHANGELOG.md', *ROOT.glob('docs/**/*.md'),
+                    *ROOT.glob('models/**/*.md'), *ROOT.glob('lab/**/*.md')])
 
 
 def relative_targets(document):

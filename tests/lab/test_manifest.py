@@ -1,0 +1,128 @@
+"""lab/manifest.yaml, the list of published results: each entry's docs page exists and shows its
+command, and the command's arguments parse with the study's own parser. Nothing is run."""
+
+import argparse
+import importlib
+import importlib.util
+import os
+import re
+import shlex
+
+import pytest
+import yaml
+
+from conftest import ROOT
+
+MANIFEST = ROOT / 'lab' / 'manifest.yaml'
+ENTRIES = yaml.safe_load(MANIFEST.read_text())['results']
+RESULTS = 'lab/results/'
+STUDIES = ('compare', 'tune', 'robustness', 'frontier', 'prediction', 'data_loop', 'mpc_sweep')
+
+
+def words(command):
+    """The command's words, leading environment assignments (OMP_NUM_THREADS=1) dropped."""
+    argv = shlex.split(command)
+    while argv and re.match(r'[A-Za-z_][A-Za-z0-9_]*=', argv[0]):
+        argv.pop(0)
+    return argv
+
+
+def study_arguments(entry):
+    """The arguments the command gives its study: `python -m lab.<study> ...` or
+    `python lab/bench/<name>.py ...`."""
+    argv = words(entry['command'])
+    if entry['study'].startswith('lab.'):
+        assert argv[:3] == ['python', '-m', entry['study']], entry['name']
+        return argv[3:]
+    assert argv[:2] == ['python', entry['study']], entry['name']
+    return argv[2:]
+
+
+def one_line(text):
+    """Markdown or a shell block as one line: continuation backslashes and runs of white space
+    become one space."""
+    return ' '.join(text.replace('\\\n', ' ').split())
+
+
+class Parsed(Exception):
+    """Raised by the patched parse_args once a benchmark's own parser has parsed its argv."""
+
+    def __init__(self, namespace):
+        super().__init__('parsed')
+        self.namespace = namespace
+
+
+def parsed(entry, monkeypatch):
+    """The study's own parser applied to the command's arguments: the Namespace, or a test
+    failure carrying argparse's message."""
+    arguments = study_arguments(entry)
+    try:
+        if entry['study'].startswith('lab.'):
+            return importlib.import_module(entry['study']).parser().parse_args(arguments)
+        # A benchmark builds its parser in main() and parses sys.argv: run main() up to the
+        # parse and stop there.
+        path = ROOT / entry['study']
+        spec = importlib.util.spec_from_file_location(f'bench_{path.stem}', path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        original = argparse.ArgumentParser.parse_args
+
+        def parse_and_stop(self, args=None, namespace=None):
+            raise Parsed(original(self, args, namespace))
+
+        monkeypatch.setattr(argparse.ArgumentParser, 'parse_args', parse_and_stop)
+        monkeypatch.setattr('sys.argv', [str(path), *arguments])
+        with pytest.raises(Parsed) as stopped:
+            module.main()
+        return stopped.value.namespace
+    except SystemExit as error:
+        pytest.fail(f"{entry['name']}: {entry['command']!r} does not parse (exit {error.code})")
+
+
+def test_the_manifest_s_entries_are_complete_and_named_once():
+    names = [entry['name'] for entry in ENTRIES]
+    assert len(names) == len(set(names)), 'a name is used twice'
+    for entry in ENTRIES:
+        missing = {'name', 'study', 'page', 'command', 'output', 'took'} - set(entry)
+        assert not missing, (entry.get('name'), missing)
+        assert entry['output'].startswith(RESULTS), entry['name']
+        assert str(entry['took']).strip(), entry['name']
+
+
+def test_every_study_and_benchmark_has_a_published_result():
+    studies = {entry['study'] for entry in ENTRIES}
+    assert {f'lab.{name}' for name in STUDIES} <= studies
+    benchmarks = {f'lab/bench/{path.name}'
+                  for path in (ROOT / 'lab' / 'bench').glob('bench_*.py')}
+    assert benchmarks <= studies, benchmarks - studies
+
+
+def test_the_results_folder_is_ignored_by_git():
+    assert '/lab/results/' in (ROOT / '.gitignore').read_text().splitlines()
+
+
+@pytest.mark.parametrize('entry', ENTRIES, ids=lambda entry: entry['name'])
+def test_the_docs_page_shows_the_command(entry):
+    page = ROOT / entry['page']
+    assert page.is_file(), f"{entry['name']}: no page {entry['page']}"
+    shown = re.compile(re.escape(one_line(entry['command'])) + r'(\s|$)')    # whole words
+    assert shown.search(one_line(page.read_text())), (
+        f"{entry['page']} does not show {entry['command']!r}")
+
+
+@pytest.mark.parametrize('entry', ENTRIES, ids=lambda entry: entry['name'])
+def test_the_command_parses_and_writes_its_output_where_the_manifest_says(entry, monkeypatch):
+    monkeypatch.chdir(ROOT)      # the output checks resolve --out from the repository root
+    args = parsed(entry, monkeypatch)
+    output = entry['output']
+    if entry['study'] == 'lab.tune':
+        from lab.tune import study_name
+        assert output == f'{args.out}/{study_name(args)}.md'
+    elif entry['study'] == 'lab.data_loop':
+        assert output == f'{args.out}/{args.plant}/report.md'
+    elif entry['study'] == 'lab.frontier':
+        assert output == args.out      # the table file itself; --show prints it as markdown
+    elif entry['study'].startswith('lab.'):
+        assert os.path.dirname(output) == args.out, (output, args.out)
+    else:
+        assert output.startswith(RESULTS + 'bench/'), output
