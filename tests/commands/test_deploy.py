@@ -230,7 +230,10 @@ def test_ctrl_c_closes_the_bag_summarises_the_steps_run_and_exits_130(tmp_path, 
     import time
     command = [sys.executable, '-m', 'tsr_koopman_ctrl.commands.deploy', '--law',
                'linear_lqr', '--steps', '100000', *deploy_args(tmp_path, ros_domain)]
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # SIGINT as a terminal delivers it: a test run started in the background (`.ci/run &`)
+    # inherits SIGINT ignored, which Python then leaves ignored.
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120.0
     while recorded_states(tmp_path / 'bags') < 100:      # some steps into the bag, under load
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
