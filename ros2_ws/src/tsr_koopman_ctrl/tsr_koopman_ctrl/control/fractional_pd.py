@@ -13,7 +13,7 @@ from tsr_koopman_ctrl.control.settings import LawSettings, setting
 @dataclasses.dataclass(frozen=True)
 class FractionalPdSettings(LawSettings):
     law: ClassVar[str] = 'fractional_pd'
-    # Tuned: lab/tune.py, 60 trials, swing <= 0.8 rad (docs/tuning/fractional_pd_swing0.8.md);
+    # Tuned: lab/tune.py, 60 trials, swing <= 0.8 rad (docs/tuning.md);
     # before tuning alpha = 0.9 and the linear LQR's gains for Q = I, R = 1 (config/untuned.yaml).
     alpha: float = setting(0.9493, 'order of the fractional derivative', low=0.01, high=1.5,
                            tune=(0.5, 1.2, 'linear'))

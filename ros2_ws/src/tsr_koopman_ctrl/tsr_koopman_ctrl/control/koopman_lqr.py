@@ -21,7 +21,7 @@ class KoopmanLqrSettings(LawSettings):
     law: ClassVar[str] = 'koopman_lqr'
     model: str = setting(MODEL, 'model directory, or the name of a shipped model')
     # Tuned: lab/tune.py --fix state_weight=state, 60 trials, swing <= 0.8 rad
-    # (docs/tuning/koopman_lqr_state_weight-state_swing0.8.md; the joint search's best, Q' = I
+    # (docs/tuning.md; the joint search's best, Q' = I
     # with R' = 9.93, scored 4.84 against 4.70); before tuning the paper's Q' = I, R' = 15
     # (config/untuned.yaml).
     r: float = setting(12.07, "input weight R' on the lifted input (paper: 15)", low=1e-9,
@@ -32,7 +32,7 @@ class KoopmanLqrSettings(LawSettings):
     q: tuple = setting((0.2273, 1.1, 1.209, 1.507), "state weights q of Q' = C^T diag(q) C "
                        "(state_weight 'state')", low=0.0, tune=(1e-2, 1e2, 'log'))
     # Searched in [-1, 1], not [-10, 10]: with the wider box 199 of 201 trials swung past
-    # 0.8 rad (docs/tuning/q_cross/koopman_lqr_bound10/).
+    # 0.8 rad (docs/tuning.md).
     q_cross: tuple = cross_weight_setting(search_bound=1.0)
 
 
@@ -77,7 +77,7 @@ class KoopmanLqr(Law):
         phi(x) the observables less their linear part at the target (psi_x(x) - z_d =
         [x; D x + phi(x)], D = `LiftedModel.lift_jacobian`'s observable rows). K_x alone is the
         gain near the target; K_phi phi(x) is what the lift adds away from it, a feedforward on
-        observables the model predicts to decay on their own (docs/comparison/README.md,
+        observables the model predicts to decay on their own (docs/comparison.md,
         *Why the fast observables fix it*)."""
         n = self.model.n
         jacobian = self.model.lift_jacobian()[n:]

@@ -18,7 +18,7 @@ from tsr_koopman_ctrl.model.shipped import DEFAULT_MODEL
 class KoopmanMpcSettings(LawSettings):
     law: ClassVar[str] = 'koopman_mpc'
     model: str = setting(DEFAULT_MODEL, 'model directory, or the name of a shipped model')
-    # Tuned: lab/tune.py, 60 trials, swing <= 0.8 rad (docs/tuning/koopman_mpc_swing0.8.md);
+    # Tuned: lab/tune.py, 60 trials, swing <= 0.8 rad (docs/tuning.md);
     # before tuning horizon 5, r = 1, q = 1 (config/untuned.yaml).
     horizon: int = setting(3, 'prediction steps of h', low=1, high=200, tune=(3, 15, 'linear'))
     r: float = setting(42.29, 'weight on the lifted input (its offset from the equilibrium)',

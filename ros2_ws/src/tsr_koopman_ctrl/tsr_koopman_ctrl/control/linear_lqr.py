@@ -13,7 +13,7 @@ from tsr_koopman_ctrl.control.settings import cross_weight_setting, LawSettings,
 @dataclasses.dataclass(frozen=True)
 class LinearLqrSettings(LawSettings):
     law: ClassVar[str] = 'linear_lqr'
-    # Tuned: lab/tune.py, 60 trials, swing <= 0.8 rad (docs/tuning/linear_lqr_swing0.8.md);
+    # Tuned: lab/tune.py, 60 trials, swing <= 0.8 rad (docs/tuning.md);
     # before tuning Q = I, R = 1 (config/untuned.yaml).
     q: tuple = setting((16.14, 0.4896, 14.45, 0.03577), "state weights Q = diag(q) on "
                        "[theta, theta', l - 1, l'] (with q_cross: Q = L L^T, L's diagonal "

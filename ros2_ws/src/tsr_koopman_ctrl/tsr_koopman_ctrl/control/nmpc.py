@@ -109,7 +109,7 @@ class NmpcSettings(LawSettings):
     theta_max: float = setting(0.8, 'bound on |theta| at every prediction node, soft with a '
                                'stiff penalty [rad]; >= pi: no bound', low=0.01, high=3.2)
     # The former koopman_nmpc's weights from its 101-trial frontier-ratio search
-    # (docs/tuning/koopman_nmpc; config/tuned_ratio.yaml), for both maps.
+    # (docs/tuning.md; config/tuned_ratio.yaml), for both maps.
     q: tuple = setting((4.71, 4.798, 8.406, 7.511), "stage weights on the smoothed |.| of "
                        "[theta, theta', ln l, l']", low=0.0, tune=(1e-1, 1e2, 'log'))
     r: float = setting(0.07805, 'stage weight on (u - 3)^2', low=1e-9,

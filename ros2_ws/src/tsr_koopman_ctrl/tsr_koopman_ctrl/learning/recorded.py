@@ -100,7 +100,7 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
 
     A window starts every `stride` steps of a gap-free run (default `steps`: windows that do not
     overlap). Overlapping windows (stride < steps) show the model every phase of a deployment,
-    which fine-tuning on a few bags needs (docs/loop/README.md measures it); errors are reported
+    which fine-tuning on a few bags needs (docs/data_loop.md measures it); errors are reported
     on non-overlapping windows. `validation_fraction` > 0 sets blocks of every run aside
     (`validation_blocks`) as non-overlapping validation windows (`BagWindows.validation`); no
     training window touches them, so overlapping windows cannot leak into the epoch choice.

@@ -239,8 +239,8 @@ class LiftedModel:
         `relift`: lift the predicted state again before every step, z_k = psi_x(x_k), so the
         model serves as a one-step map x+ = C (A psi_x(x) + B psi_u(x, u)) instead of a linear
         system in z. Slower (one lift per step); along the physics NMPC's bang-bang deployment
-        from the paper's start far more accurate beyond 30 steps (docs/comparison/
-        README.md, *What the comparison shows*). One start may be given as x0 (n,), u (T,)."""
+        from the paper's start far more accurate beyond 30 steps (docs/comparison.md). One
+        start may be given as x0 (n,), u (T,)."""
         x0, u = prediction_inputs(x0, u, self.n)
         if relift:
             states = [x0]
