@@ -7,6 +7,7 @@ import pytest
 from tsr_koopman_ctrl.control import LinearisedLqr
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS
 from lab import tune
+from lab.tuning import scoring, space
 
 
 def test_a_study_resumes_and_reports_on_held_out_starts(tmp_path):
@@ -33,17 +34,17 @@ def test_the_laws_own_settings_are_a_trial_with_several_workers(tmp_path):
     storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(
         str(tmp_path / 'linear_lqr_swing0.8.journal')))
     study = optuna.load_study(study_name='linear_lqr_swing0.8', storage=storage)
-    assert tune.as_params('linear_lqr', {}) in [t.params for t in study.trials]
+    assert space.as_params('linear_lqr', {}) in [t.params for t in study.trials]
 
 
 def test_the_search_space_comes_from_the_settings_classes():
     import optuna
     trial = optuna.trial.FixedTrial({'q_0': 2.0, 'q_1': 3.0, 'q_2': 4.0, 'q_3': 5.0, 'r': 0.5})
-    assert tune.suggest(trial, 'linear_lqr') == {'q': (2.0, 3.0, 4.0, 5.0), 'r': 0.5}
-    assert set(tune.as_params('koopman_mpc', {})) == {'horizon', 'r', 'q_0', 'q_1', 'q_2',
-                                                      'q_3'}
+    assert space.suggest(trial, 'linear_lqr') == {'q': (2.0, 3.0, 4.0, 5.0), 'r': 0.5}
+    assert set(space.as_params('koopman_mpc', {})) == {'horizon', 'r', 'q_0', 'q_1', 'q_2',
+                                                       'q_3'}
     # The state weight's cross terms only when asked (--also), six of them.
-    params = tune.as_params('linear_lqr', {}, also=('q_cross',))
+    params = space.as_params('linear_lqr', {}, also=('q_cross',))
     assert {f'q_cross_{i}' for i in range(6)} <= set(params)
     assert all(params[f'q_cross_{i}'] == 0.0 for i in range(6))
 
@@ -58,22 +59,22 @@ def test_also_names_a_searchable_setting(tmp_path, capsys):
         capsys.readouterr().err
 
 
-@pytest.mark.parametrize('settings, expected', [({'r': -1.0}, tune.PENALTY_TAU)])
+@pytest.mark.parametrize('settings, expected', [({'r': -1.0}, scoring.PENALTY_TAU)])
 def test_a_law_that_cannot_be_built_scores_the_penalty(settings, expected):
-    assert tune.score('linear_lqr', settings, COMPARISON_STARTS[:1], 0.8, 100)[0] == expected
+    assert scoring.score('linear_lqr', settings, COMPARISON_STARTS[:1], 0.8, 100)[0] == expected
 
 
 def test_the_ratio_objectives_score_the_frontier_ratio_at_each_runs_swing():
     starts = COMPARISON_STARTS[:2]
-    mean, runs = tune.score('linear_lqr', {}, starts, 0.8, 1000, 'ratio')
-    worst, _ = tune.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio')
+    mean, runs = scoring.score('linear_lqr', {}, starts, 0.8, 1000, 'ratio')
+    worst, _ = scoring.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio')
     # Recomputed from the frontier table directly, not from the figures' own ratio.
     from tsr_koopman_ctrl.evaluation.frontier import frontier_tau
     ratios = [r['settle_tau'] / frontier_tau(s, r['swing']) for s, r in zip(starts, runs)]
     assert mean == pytest.approx(sum(ratios) / 2) and worst == pytest.approx(max(ratios))
     assert worst > mean
     # A swing bound the runs break scores the ratio penalty, not the settle one.
-    assert tune.score('linear_lqr', {}, starts, 0.1, 1000, 'ratio')[0] == tune.PENALTY_RATIO
+    assert scoring.score('linear_lqr', {}, starts, 0.1, 1000, 'ratio')[0] == scoring.PENALTY_RATIO
 
 
 def test_a_study_keeps_its_objective_and_names_it(tmp_path, capsys):
@@ -92,33 +93,33 @@ def test_a_study_keeps_its_objective_and_names_it(tmp_path, capsys):
 
 def test_the_swing_objective_scores_the_largest_swing_of_settled_runs():
     starts = COMPARISON_STARTS[:2]
-    value, runs = tune.score('linear_lqr', {}, starts, 0.1, 1000, 'swing')
+    value, runs = scoring.score('linear_lqr', {}, starts, 0.1, 1000, 'swing')
     assert value == max(r['swing'] for r in runs) and value > 0.1   # the bound plays no part
-    assert tune.score('linear_lqr', {'r': -1.0}, starts, 0.8, 100, 'swing')[0] == \
-        tune.PENALTY_SWING
+    assert scoring.score('linear_lqr', {'r': -1.0}, starts, 0.8, 100, 'swing')[0] == \
+        scoring.PENALTY_SWING
     # 30 steps settle nowhere: every start scores the penalty.
-    assert tune.score('linear_lqr', {}, starts, 0.8, 30, 'swing')[0] == tune.PENALTY_SWING
+    assert scoring.score('linear_lqr', {}, starts, 0.8, 30, 'swing')[0] == scoring.PENALTY_SWING
 
 
 def test_the_graded_penalty_grows_with_how_far_a_run_missed():
     starts = COMPARISON_STARTS[:2]
     # The same runs, flat and graded: under a 0.1-rad bound both starts swing past it.
-    flat, runs = tune.score('linear_lqr', {}, starts, 0.1, 1000, 'worst-ratio')
-    graded, _ = tune.score('linear_lqr', {}, starts, 0.1, 1000, 'worst-ratio', graded=True)
-    assert flat == tune.PENALTY_RATIO
+    flat, runs = scoring.score('linear_lqr', {}, starts, 0.1, 1000, 'worst-ratio')
+    graded, _ = scoring.score('linear_lqr', {}, starts, 0.1, 1000, 'worst-ratio', graded=True)
+    assert flat == scoring.PENALTY_RATIO
     past = max(r['swing'] for r in runs) - 0.1     # every run settled, so no unsettled 1
     assert all(r['settle_tau'] is not None for r in runs) and past > 0.3
-    assert graded == pytest.approx(tune.PENALTY_RATIO + past)
+    assert graded == pytest.approx(scoring.PENALTY_RATIO + past)
     # A looser bound misses by less and scores less; a run within it scores its ratio.
-    looser, _ = tune.score('linear_lqr', {}, starts, 0.3, 1000, 'worst-ratio', graded=True)
-    assert tune.PENALTY_RATIO < looser < graded
-    within, _ = tune.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio', graded=True)
-    assert within == tune.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio')[0] < 2.0
+    looser, _ = scoring.score('linear_lqr', {}, starts, 0.3, 1000, 'worst-ratio', graded=True)
+    assert scoring.PENALTY_RATIO < looser < graded
+    within, _ = scoring.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio', graded=True)
+    assert within == scoring.score('linear_lqr', {}, starts, 0.8, 1000, 'worst-ratio')[0] < 2.0
     # 30 steps settle nowhere (one each), a law that cannot be built scores the cap.
-    assert tune.score('linear_lqr', {}, starts, 0.8, 30, 'settle', graded=True)[0] == \
-        tune.PENALTY_TAU + 1.0
-    assert tune.score('linear_lqr', {'r': -1.0}, starts, 0.8, 30, 'settle', graded=True)[0] == \
-        tune.PENALTY_TAU + tune.MISS_CAP
+    assert scoring.score('linear_lqr', {}, starts, 0.8, 30, 'settle', graded=True)[0] == \
+        scoring.PENALTY_TAU + 1.0
+    assert scoring.score('linear_lqr', {'r': -1.0}, starts, 0.8, 30, 'settle', graded=True)[0] == \
+        scoring.PENALTY_TAU + scoring.MISS_CAP
 
 
 def test_a_study_keeps_its_penalty_and_names_it(tmp_path, capsys):
@@ -126,7 +127,7 @@ def test_a_study_keeps_its_penalty_and_names_it(tmp_path, capsys):
             '--swing-max', '0.1']
     assert tune.main([*args, '--penalty', 'graded']) == 0
     summary = json.loads((tmp_path / 'linear_lqr_graded_swing0.1.json').read_text())
-    assert summary['penalty'] == 'graded' and summary['best_value'] > tune.PENALTY_TAU
+    assert summary['penalty'] == 'graded' and summary['best_value'] > scoring.PENALTY_TAU
     assert 'the trial that missed least' in capsys.readouterr().out
     journal = str(tmp_path / 'linear_lqr_graded_swing0.1.journal')
     assert tune.main([*args, '--storage', journal, '--study', 'linear_lqr_graded_swing0.1']) == 2
