@@ -75,12 +75,14 @@ class PostgresServer:
         self.directory.mkdir(parents=True, exist_ok=True)
         password_file = self.directory / 'password'
         password_file.write_text(self.password + '\n')
-        subprocess.run([str(binaries() / 'initdb'), '-D', str(self.data), '-U', 'postgres',
-                        '--pwfile', str(password_file), '--auth-local', 'trust',
-                        '--auth-host', 'scram-sha-256', '-E', 'UTF8', '--no-sync'],
-                       check=True, capture_output=True, timeout=START_TIMEOUT,
-                       **_child_options())
+        initdb = subprocess.run(
+            [str(binaries() / 'initdb'), '-D', str(self.data), '-U', 'postgres',
+             '--pwfile', str(password_file), '--auth-local', 'trust',
+             '--auth-host', 'scram-sha-256', '-E', 'UTF8', '--no-sync'],
+            capture_output=True, text=True, timeout=START_TIMEOUT, **_child_options())
         password_file.unlink()
+        if initdb.returncode != 0:
+            raise RuntimeError(f'initdb failed ({initdb.returncode}):\n{initdb.stderr}')
         # A port found free can be taken before the server binds it: then another.
         for _ in range(3):
             self.port = free_port()
