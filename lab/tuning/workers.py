@@ -45,7 +45,8 @@ def run_workers(study, spec, fixed, storage, trials, jobs=1, seed=0, progress=Tr
             while any(p.is_alive() for p in procs):
                 bar.n = min(finished(study), trials)
                 bar.refresh()
-                wait([p.sentinel for p in procs], timeout=1.0)   # or sooner, as one ends
+                # A second each, or sooner as one ends (an ended one's sentinel stays ready).
+                wait([p.sentinel for p in procs if p.is_alive()], timeout=1.0)
         except KeyboardInterrupt:      # the workers got it too: they finish their trials
             print('tune: finishing the trials in progress (Ctrl-C again abandons them)',
                   file=sys.stderr, flush=True)
