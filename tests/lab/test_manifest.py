@@ -116,8 +116,10 @@ def test_the_command_parses_and_writes_its_output_where_the_manifest_says(entry,
     args = parsed(entry, monkeypatch)
     output = entry['output']
     if entry['study'] == 'lab.tune':
-        from lab.tune import study_name
-        assert output == f'{args.out}/{study_name(args)}.md'
+        from lab.tuning.spec import StudySpec
+        spec = StudySpec(args.law, tuple(args.fix), tuple(args.also), args.objective,
+                         args.penalty, args.starts, args.swing_max, args.steps, args.study)
+        assert output == f'{args.out}/{spec.study_name}.md'
     elif entry['study'] == 'lab.data_loop':
         assert output == f'{args.out}/{args.plant}/report.md'
     elif entry['study'] == 'lab.frontier':

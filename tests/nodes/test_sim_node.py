@@ -49,7 +49,7 @@ class SimDriver:
 
     def wait_for_sim(self):
         self.ros.spin_until(lambda: self.cmd_pub.get_subscription_count() > 0 and self.states,
-                            what='the simulator to appear')
+                            timeout=30.0, what='the simulator to appear')
 
 
 def test_lockstep_trajectory_matches_the_dynamics_module(ros, start_node):
