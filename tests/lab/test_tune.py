@@ -164,12 +164,16 @@ def test_swing_starts_tune_on_six_starts_and_the_study_keeps_them(tmp_path, caps
 
 
 def _start_tune(tmp_path, trials=100000):
+    import signal
     import subprocess
     import sys
+    # SIGINT as a terminal delivers it: a test run started in the background (`.ci/run &`)
+    # inherits SIGINT ignored, which Python then leaves ignored.
     return subprocess.Popen(
         [sys.executable, '-m', 'lab.tune', '--law', 'linear_lqr', '--steps',
          '200', '--trials', str(trials), '--jobs', '2', '--out', str(tmp_path)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _journal_size_once_trials_run(tmp_path, proc, timeout=60.0):
