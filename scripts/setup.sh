@@ -44,12 +44,19 @@ build_workspace() {
   have=$(cat "$WS/install/.tsr-built" 2>/dev/null || true)
   [ "$want" = "$have" ] && return 0
   say "colcon build of $WS"
+  # A symlink install keeps the file lists of its last build: a data file removed since makes
+  # the next build fail, so a failed build is retried once from a clean build tree.
+  colcon_build || { say "rebuilding from scratch"; rm -rf "$WS/build" "$WS/install"; \
+                    colcon_build; } || { cat "$WS/colcon_build.log" >&2; exit 1; }
+  echo "$want" > "$WS/install/.tsr-built"
+}
+
+colcon_build() {
   # Fix 1 of docs/ros_from_wheels.md: colcon-ros copies AMENT_PREFIX_PATH into CMAKE_PREFIX_PATH.
   (cd "$WS" && AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH" \
      "$VENV/bin/colcon" build --symlink-install --event-handlers console_cohesion- \
      --cmake-args -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \
-     > "$WS/colcon_build.log" 2>&1) || { cat "$WS/colcon_build.log" >&2; exit 1; }
-  echo "$want" > "$WS/install/.tsr-built"
+     > "$WS/colcon_build.log" 2>&1)
 }
 
 if ! (set -eo pipefail; install_venv; build_workspace); then

@@ -55,14 +55,15 @@ def test_manifest_declares_every_import_and_nothing_stale(package):
 
 
 def test_the_control_path_never_imports_torch_or_casadi():
-    """The controller node's imports and a koopman_mpc step on the shipped model: no torch
-    (training only), no casadi (loaded when a physics_nmpc is built, never by the registry)."""
+    """The controller node's imports and a step of the learned laws on their shipped models (the
+    main job's koopman_nmpc among them): no torch (training only), no casadi (loaded when a
+    physics_nmpc is built, never by the registry)."""
     code = ('import sys\n'
             'import tsr_koopman_ctrl.nodes.controller_node\n'
             'from tsr_koopman_ctrl.control import make_controller\n'
             'from tsr_koopman_ctrl.learning import Edmd, Sindy, multistep_errors\n'
-            'law = make_controller("koopman_mpc")\n'
-            'law.compute([0.0, 0.0, -0.99, 0.5])\n'
+            'for name in ("koopman_mpc", "koopman_lqr", "koopman_nmpc"):\n'
+            '    make_controller(name).compute([0.0, 0.0, -0.99, 0.5])\n'
             'make_controller("linear_lqr").compute([0.0, 0.0, -0.99, 0.5])\n'
             'assert "torch" not in sys.modules, "torch imported"\n'
             'assert "casadi" not in sys.modules, "casadi imported"\n')
@@ -90,12 +91,12 @@ def test_lookups_by_name_without_a_sourced_workspace_say_so_in_one_line(monkeypa
     from tsr_sim.plant import plant_file
     monkeypatch.delenv('AMENT_PREFIX_PATH', raising=False)
     sourced = 'is the workspace sourced?'
-    with pytest.raises(ValueError, match=f"no settings preset 'tuned_ratio'.*{sourced}"):
-        preset('tuned_ratio')
+    with pytest.raises(ValueError, match=f"no settings preset 'tuned_settle'.*{sourced}"):
+        preset('tuned_settle')
     with pytest.raises(ValueError, match=f"no plant variant 'nominal'.*{sourced}"):
         plant_file('nominal')
     with pytest.raises(ModelFileError, match=f'koopman_default: no such model.*{sourced}'):
         LiftedModel.load('koopman_default')
     # By path they need no workspace.
     config = SRC / 'tsr_koopman_ctrl' / 'config'
-    assert preset(str(config / 'tuned_ratio.yaml'))['koopman_mpc']['horizon'] == 30
+    assert preset(str(config / 'tuned_settle.yaml'))['koopman_mpc']['horizon'] == 3

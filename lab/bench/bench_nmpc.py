@@ -18,7 +18,7 @@ and prints, per step, the median and p99 (the first step, the cold start, left o
 Then, on the nodes and plan of the last step, the map alone (`advance`: the simulation without
 derivatives), `interval` with exact sensitivities and with the held one-step Jacobian
 ('start'). The yardstick, timed in the same run before and after each law: one scalar numpy
-RK4 plant step of 20 substeps (`tsr_sim.dynamics.rk4_step(x, u, 0.01, 20)` on a 1-D state).
+RK4 plant step of 20 substeps (lab/bench/yardstick.py).
 Every time is also given as a multiple of it (the machine's speed varies from run to run).
 """
 
@@ -26,26 +26,15 @@ import argparse
 import time
 
 import numpy as np
-from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control import closed_loop, make_controller, nmpc
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS
 
+from lab.bench.yardstick import seconds as yardstick
+
 PARTS = ('shift', 'intervals', 'condense', 'QP')
-YARDSTICK_STATE = np.array([0.0, 0.0, -0.99, 0.5])
-
-
-def yardstick(repeats=400):
-    """Seconds of one yardstick step: the median of 8 batches."""
-    batches = []
-    for _ in range(8):
-        start = time.perf_counter()
-        for _ in range(repeats // 8):
-            dynamics.rk4_step(YARDSTICK_STATE, 3.0, 0.01, 20)
-        batches.append((time.perf_counter() - start) / (repeats // 8))
-    return float(np.median(batches))
 
 
 def instrument(law, spent):

@@ -9,7 +9,7 @@
 settle tau, swing, frontier ratio at the run's own swing (and, for swing0.4, to the 0.4-rad
 frontier), fallbacks, compute time per step (median, p99; the first step, the cold start, left
 out) beside the yardstick (one scalar numpy RK4 plant step of 20 substeps,
-`tsr_sim.dynamics.rk4_step(x, u, 0.01, 20)`), timed before and after every run.
+lab/bench/yardstick.py), timed before and after every run.
 `robustness`: offset-free (the default observer) from lab/robustness.py's six starts on the
 plant with actuator gain g in (0.8, 0.9, 1.1, 1.2), a 0.05-tau actuator lag and 1e-3 sensor
 noise (seed 7), and on the nominal plant: the settle tau and its ratio to the nominal one.
@@ -19,7 +19,6 @@ One process, single-threaded numpy: run with OMP_NUM_THREADS=1 OPENBLAS_NUM_THRE
 
 import argparse
 import json
-import time
 
 import numpy as np
 from tsr_sim import dynamics
@@ -30,21 +29,11 @@ from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, frontier_tau, HELD_OUT_STARTS,
                                          run_figures)
 
+from lab.bench.yardstick import seconds as yardstick
+
 STARTS = COMPARISON_STARTS + HELD_OUT_STARTS
 ROBUSTNESS_STARTS = COMPARISON_STARTS + HELD_OUT_STARTS[:2]   # lab/robustness.py's
 GAINS = (0.8, 0.9, 1.1, 1.2)
-YARDSTICK_STATE = np.array([0.0, 0.0, -0.99, 0.5])
-
-
-def yardstick(repeats=200):
-    """Seconds of one scalar numpy RK4 plant step with 20 substeps (the median of 5 batches)."""
-    batches = []
-    for _ in range(5):
-        start = time.perf_counter()
-        for _ in range(repeats // 5):
-            dynamics.rk4_step(YARDSTICK_STATE, 3.0, 0.01, 20)
-        batches.append((time.perf_counter() - start) / (repeats // 5))
-    return float(np.median(batches))
 
 
 def run(law_name, settings, start, steps, bare, plant=None):
