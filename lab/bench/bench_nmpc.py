@@ -2,6 +2,10 @@
 
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python lab/bench/bench_nmpc.py [--steps 400]
         [--start 0] [--set koopman_nmpc.model=models/koopman_retrieval] [--bare]
+        [--model koopman_retrieval --model models/koopman_planner]
+
+`--model` (repeatable) runs koopman_nmpc once per model, each beside its own yardstick, in
+the same run (the --set settings apply to every one).
 
 Runs each law as deployed (`make_controller`: the offset-free observer unless --bare) on the
 nominal plant from a start (default the paper's), times every call of each part of the step
@@ -82,6 +86,8 @@ def main(argv=None):
     parser.add_argument('--law', nargs='+', default=['physics_nmpc', 'koopman_nmpc'])
     parser.add_argument('--set', action='append', default=[], metavar='LAW.NAME=VALUE')
     parser.add_argument('--bare', action='store_true', help='no offset-free observer')
+    parser.add_argument('--model', action='append', default=[],
+                        help='koopman_nmpc on this model (repeatable: one run each)')
     args = parser.parse_args(argv)
     start = (COMPARISON_STARTS + HELD_OUT_STARTS)[args.start]
     overrides = {law: {} for law in args.law}
@@ -106,10 +112,15 @@ def main(argv=None):
     print(f'start {list(start)}, {args.steps} steps on the nominal plant, '
           f'{"bare" if args.bare else "offset-free (default observer)"}; per step, '
           'the first (cold) step left out')
-    for law_name in args.law:
+    runs = [(law_name, {}) for law_name in args.law]
+    if args.model:
+        runs = [run for law_name in args.law for run in (
+            [(law_name, {'model': model}) for model in args.model]
+            if law_name == 'koopman_nmpc' else [(law_name, {})])]
+    for law_name, model in runs:
         before = yardstick()
         law = make_controller(law_name, observer={'disturbance': 'none'} if args.bare
-                              else None, **overrides[law_name])
+                              else None, **{**overrides[law_name], **model})
         spent.clear()
         core = instrument(law, spent)
         closed_loop(law, start, args.steps)
@@ -119,8 +130,8 @@ def main(argv=None):
         table = {name: np.array([s[name] for s in steps]) for name in PARTS + ('step',)}
         table['other'] = table['step'] - sum(table[name] for name in PARTS)
         settings = core.settings
-        extra = (f", sensitivities {settings.sensitivities}, {settings.precision}"
-                 if law_name == 'koopman_nmpc' else '')
+        extra = (f", sensitivities {settings.sensitivities}, {settings.precision}, model "
+                 f"{settings.model}" if law_name == 'koopman_nmpc' else '')
         print(f'\n{law_name} ({len(core.durations)} intervals, {core.counts.sum()} samples'
               f'{extra}); yardstick {yard * 1e3:.3f} ms (before {before * 1e3:.3f}, after '
               f'{after * 1e3:.3f}); fallbacks {law.fallbacks}')

@@ -70,7 +70,9 @@ def config_from_args(args, base=None):
     overrides = {'epochs': args.epochs, 'weight_equilibrium': args.weight_equilibrium,
                  'weight_one_step': args.weight_one_step,
                  'anchor_equilibrium': args.anchor_equilibrium or None,
-                 'lift_dim': args.lift_dim, 'seed': args.seed, 'batch_size': args.batch_size,
+                 'lift_dim': args.lift_dim, 'hidden': args.hidden, 'layers': args.layers,
+                 'input_hidden': args.input_hidden, 'input_layers': args.input_layers,
+                 'seed': args.seed, 'batch_size': args.batch_size,
                  'learning_rate': args.learning_rate}
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if base is not None:
@@ -115,6 +117,10 @@ def parser():
     p.add_argument('--test-seed', type=cli.SEED, default=datasets.TEST_SEED)
     p.add_argument('--epochs', type=cli.integer(1))
     p.add_argument('--lift-dim', type=int, help='K, the number of learned observables')
+    p.add_argument('--hidden', type=cli.integer(1), help='Phi: units per hidden layer')
+    p.add_argument('--layers', type=cli.integer(1), help='Phi: hidden layers')
+    p.add_argument('--input-hidden', type=cli.integer(1), help='psi_ux: units per hidden layer')
+    p.add_argument('--input-layers', type=cli.integer(1), help='psi_ux: hidden layers')
     p.add_argument('--batch-size', type=int)
     p.add_argument('--learning-rate', type=cli.number(above=0))
     p.add_argument('--seed', type=cli.SEED)
