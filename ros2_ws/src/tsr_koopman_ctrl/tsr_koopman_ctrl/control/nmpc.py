@@ -127,6 +127,9 @@ class NmpcSettings(LawSettings):
                                  'the one flown last step', low=0.0, high=1e6)
     trust: float = setting(2.0, 'largest change of a planned tension per step (the QP trusts '
                            'the linearisation that far)', low=1e-3, high=10.0)
+    actuator_lag: float = setting(0.0, 'time constant of the tension actuator the plans model '
+                                  '[tau]: the felt tension follows the planned one with this '
+                                  'first-order lag (0: none)', low=0.0, high=10.0)
 
 
 class Nmpc(Law):
@@ -157,6 +160,7 @@ class Nmpc(Law):
         self.lqr_gain = continuous_lqr_gain(np.ones(4), 1.0)[0]
         self.theta_bound = (np.inf if s.theta_max >= NO_SWING_BOUND
                             else s.theta_max - THETA_MARGIN)
+        self.lag = lag_model(self.durations, s.actuator_lag, self.h)
         self.reset()
 
     def make_map(self):
@@ -169,6 +173,10 @@ class Nmpc(Law):
         #: DAQP's exit flag of the last QP; the tension flown last step (None: none yet).
         self.qp_status = 0
         self.flown = None
+        #: The actuator's tension now by the lag model (None: none flown yet; the actuator
+        #: starts on the first tension), and the felt tensions of the plan (N,).
+        self.actuator = None
+        self.felt_plan = None
         #: The tensions the plans may take: [0, u_max], or the felt range the offset-free
         #: wrapper sets ([phi(0), phi(u_max)]: what the actuator can make the plant feel).
         self.felt_range = (0.0, self.u_max)
@@ -183,23 +191,49 @@ class Nmpc(Law):
     def compute(self, x):
         x = planar_state(x)
         if self.plan is None:
-            self.flown = self.cold_start(x)
-            return self.flown
+            return self.fly(self.cold_start(x))
         # 1. shift: node j advanced one sample lies at the new grid's time j
         shifted = np.clip(shift_plan(self.plan, self.starts, self.durations, self.h),
                           *self.felt_range)
-        nodes = self.map.step(self.nodes, np.r_[self.plan, self.plan[-1]])
+        nodes = self.map.step(self.nodes, np.r_[self.felt_plan, self.felt_plan[-1]])
         nodes[0] = x
         step = self.iterate(nodes, shifted) if np.all(np.isfinite(nodes)) else None
         if step is None:
             # A failed QP or a node off the map's domain: a cold start from here (from the
             # shifted plan if its rollout stays in the domain, else from the LQR plan)
             self.fallbacks += 1       # (once, whether the cold start then solves or not)
-            self.flown = self.cold_start(x, shifted, count=False)
-            return self.flown
+            return self.fly(self.cold_start(x, shifted, count=False))
         self.plan, self.nodes = step
-        self.flown = float(self.plan[0])
-        return self.flown
+        self.felt_plan = self.felt(self.plan)
+        return self.fly(float(self.plan[0]))
+
+    def fly(self, tension):
+        """Record `tension` as flown (the rate term's u_{-1}) and advance the lag model's
+        actuator one sample under it."""
+        self.flown = tension
+        if self.lag is not None:
+            start = tension if self.actuator is None else self.actuator
+            self.actuator = tension + (start - tension) * self.lag.decay
+        return tension
+
+    def felt(self, plan):
+        """The tensions the plant feels on average over each interval of `plan` (N,): the plan
+        itself, or with an actuator lag M plan + m a_0 (a_0 the actuator now; none flown yet:
+        the plan's first tension, where the actuator starts)."""
+        if self.lag is None:
+            return np.asarray(plan, dtype=float)
+        start = plan[0] if self.actuator is None else self.actuator
+        return self.lag.matrix @ plan + self.lag.start * start
+
+    def tension_gains(self, gains):
+        """The condensed gains (N + 1, n, N) in the felt tensions, chained to the planned ones."""
+        if self.lag is None:
+            return gains
+        matrix = self.lag.matrix
+        if self.actuator is None:
+            matrix = matrix.copy()
+            matrix[:, 0] += self.lag.start
+        return gains @ matrix
 
     def cold_start(self, x, plan=None, count=True):
         """The first step, and the step after a failure: `plan` (default: the LQR law's, also
@@ -213,9 +247,10 @@ class Nmpc(Law):
             plan, nodes = self.lqr_plan(x)
         solved = False
         for _ in range(COLD_ITERATIONS):
-            end, a, b = self.map.interval(nodes[:-1], plan, self.counts,
+            end, a, b = self.map.interval(nodes[:-1], self.felt(plan), self.counts,
                                           exact=self.exact_sensitivities)
-            du = self.solve(*condense(nodes, end, a, b), plan)
+            predicted, gains = condense(nodes, end, a, b)
+            du = self.solve(predicted, self.tension_gains(gains), plan)
             if du is None:
                 break
             for _ in range(BACKTRACKS):
@@ -228,7 +263,7 @@ class Nmpc(Law):
                 break
             plan, nodes, solved = candidate, candidate_nodes, True
         self.fallbacks += count and not solved
-        self.plan, self.nodes = plan, nodes
+        self.plan, self.nodes, self.felt_plan = plan, nodes, self.felt(plan)
         return float(plan[0])
 
     def rollout(self, x, plan):
@@ -236,7 +271,7 @@ class Nmpc(Law):
         time: sequential, for the cold start only)."""
         nodes = [np.asarray(x, dtype=float)]
         with np.errstate(all='ignore'):
-            for tension, count in zip(plan, self.counts):
+            for tension, count in zip(self.felt(plan), self.counts):
                 nodes.append(self.map.advance(nodes[-1][None], np.array([tension]),
                                               [count])[0])
         return np.array(nodes)
@@ -251,7 +286,10 @@ class Nmpc(Law):
                 plan.append(float(np.clip(dynamics.EQUILIBRIUM_TENSION
                                           - self.lqr_gain @ state, *self.felt_range)))
                 nodes.append(self.map.advance(state[None], np.array([plan[-1]]), [count])[0])
-        return np.array(plan), self.floored(np.array(nodes))
+        plan = np.array(plan)
+        if self.lag is not None:   # (the LQR law's tensions, flown through the lag)
+            nodes = self.rollout(x, plan)
+        return plan, self.floored(np.array(nodes))
 
     def floored(self, nodes):
         """Node states with l >= LENGTH_FLOOR and finite (a plan's linear prediction may reel
@@ -265,11 +303,12 @@ class Nmpc(Law):
         """One RTI step from nodes (N + 1, n) (nodes[0] the measured state) and plan (N,):
         the new (plan, nodes), or None if the QP fails or an interval leaves the domain."""
         with np.errstate(all='ignore'):
-            end, a, b = self.map.interval(nodes[:-1], plan, self.counts,
+            end, a, b = self.map.interval(nodes[:-1], self.felt(plan), self.counts,
                                           exact=self.exact_sensitivities)
         if not (in_domain(end) and np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
             return None
         predicted, gains = condense(nodes, end, a, b)
+        gains = self.tension_gains(gains)
         du = self.solve(predicted, gains, plan)
         if du is None:
             return None
@@ -343,6 +382,39 @@ class Nmpc(Law):
         if status < 1 or not np.all(np.isfinite(du)):
             return None
         return np.asarray(du)
+
+
+@dataclasses.dataclass(frozen=True)
+class LagModel:
+    """A first-order actuator lag on the grid: the felt tensions v = matrix u + start a_0
+    (each the mean of the actuator over its interval, the tensions u held on theirs, a_0 the
+    actuator at the start), and the actuator's decay over one sample h."""
+    matrix: np.ndarray
+    start: np.ndarray
+    decay: float
+
+
+def lag_model(durations, lag, h=dynamics.PAPER_STEP):
+    """The `LagModel` of time constant `lag` on intervals `durations`; None for lag 0. Over an
+    interval of length D from actuator a under u: a+ = u + (a - u) e, e = exp(-D / lag), and
+    the mean is u + (a - u) w, w = lag / D (1 - e)."""
+    if lag <= 0.0:
+        return None
+    n_intervals = len(durations)
+    decay = np.exp(-durations / lag)
+    mean = lag / durations * (1.0 - decay)
+    actuator = np.zeros(n_intervals + 1)       # a_j = actuator[j] a_0 + gains[j] @ u
+    actuator[0] = 1.0
+    gains = np.zeros((n_intervals + 1, n_intervals))
+    matrix, start = np.zeros((n_intervals, n_intervals)), np.zeros(n_intervals)
+    for j in range(n_intervals):
+        matrix[j] = mean[j] * gains[j]
+        matrix[j, j] += 1.0 - mean[j]
+        start[j] = mean[j] * actuator[j]
+        gains[j + 1] = decay[j] * gains[j]
+        gains[j + 1, j] += 1.0 - decay[j]
+        actuator[j + 1] = decay[j] * actuator[j]
+    return LagModel(matrix, start, float(np.exp(-h / lag)))
 
 
 def in_domain(nodes):
