@@ -1,15 +1,16 @@
-"""The comparison: every law under each settings preset (untuned, tuned, tuned for the ratio)
-from the comparison and the held-out starts, scored against the minimum-time frontier.
+"""The comparison: every law under each settings preset (untuned, tuned for the ratio, tuned for
+the settle time) from the comparison and the held-out starts, scored against the minimum-time
+frontier.
 ROS-free (the DDS loop is step-identical).
 
     python -m lab.compare [--law ...] [--out lab/results/comparison]
 
 Every law runs offset-free (the default observer) with its settings from a preset: 'tuned' (the
-laws' defaults, set by lab/tune.py on the mean settle time), 'tuned_ratio' (config/
-tuned_ratio.yaml: lab/tune.py --objective worst-ratio, every law the NMPC included) or
-'untuned' (config/untuned.yaml), or 'tuned_cross' (config/tuned_cross.yaml: the
-quadratic-cost laws tuned for the ratio with the state weight's cross terms); a preset file
-shows the laws it names. Per run: settle time
+laws' defaults, set by lab/tune.py --objective worst-ratio, the largest frontier ratio),
+'tuned_settle' (config/tuned_settle.yaml: lab/tune.py on the mean settle time), 'untuned'
+(config/untuned.yaml), or 'tuned_cross' (config/tuned_cross.yaml: the quadratic-cost laws
+tuned for the ratio with the state weight's cross terms); a preset file shows the laws it
+names. Per run: settle time
 into the 1% zone, swing, the frontier at that swing from that start (evaluation/frontier.py,
 computed by the project's own minimum-time solver) and the ratio, tension integral and peak,
 the law's compute time per step (median, p99) and solver fallbacks. Writes comparison.md,
@@ -150,9 +151,9 @@ def parser():
                    choices=sorted(CONTROLLERS),
                    help=f'default: every law but {", ".join(sorted(SLOW_LAWS))} (slow: name it, '
                    'with --steps 700)')
-    p.add_argument('--presets', nargs='+', default=['untuned', 'tuned', 'tuned_ratio'],
+    p.add_argument('--presets', nargs='+', default=['untuned', 'tuned', 'tuned_settle'],
                    help="settings presets: 'tuned' (the laws' defaults), or a parameter file "
-                   "by path or by name under config/ ('untuned', 'tuned_ratio', "
+                   "by path or by name under config/ ('untuned', 'tuned_settle', "
                    "'tuned_cross'); a file shows the laws it names")
     p.add_argument('--steps', type=cli.STEPS, default=2000)
     p.add_argument('--theta-max', type=cli.number(above=0), metavar='RAD',

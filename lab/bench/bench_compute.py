@@ -7,7 +7,7 @@ not measure it. Figures (microseconds): median, p99 and max per step, the median
 of the control period h = 0.01 tau (8.47 s of flight at the paper's orbit rate) and as a
 multiple of linear_lqr's. The bare laws by default; --offset-free wraps each in the
 disturbance observer, as the controller node builds them. The laws' defaults, or a settings
-preset (--preset tuned_ratio: koopman_mpc plans 30 steps there, against 3 by default). The
+preset (--preset tuned_settle: koopman_mpc plans 3 steps there, against 30 by default). The
 first build of a law (a model loaded, a CasADi function made) is not
 timed.
 """
@@ -31,7 +31,7 @@ def main():
     parser.add_argument('--offset-free', action='store_true',
                         help='wrap each law in the disturbance observer (the node default)')
     parser.add_argument('--preset', help="settings preset, by path or by name under config/ "
-                        "('untuned', 'tuned_ratio', 'tuned_cross'; default: the laws' defaults)")
+                        "('untuned', 'tuned_settle', 'tuned_cross'; default: the laws' defaults)")
     args = parser.parse_args()
     try:
         settings = preset(args.preset) if args.preset else {}

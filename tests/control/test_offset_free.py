@@ -56,7 +56,7 @@ def test_the_observer_converges_to_a_constant_disturbance(disturbance, plant, tr
 
 def test_the_bare_mpc_misses_the_zone_with_a_10_percent_gain_error_and_offset_free_does_not():
     bare, states, _ = settle(KoopmanMpc(), GAIN_ERROR)
-    assert bare is None and abs(states[-1, dynamics.LENGTH_OFFSET]) > 0.02
+    assert bare is None and abs(states[-1, dynamics.LENGTH_OFFSET]) > 0.01   # out of the zone
     nominal, _, _ = settle(make_controller('koopman_mpc'))
     law = make_controller('koopman_mpc')
     disturbed, _, _ = settle(law, GAIN_ERROR)

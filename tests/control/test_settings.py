@@ -54,7 +54,8 @@ def test_a_parameter_naming_no_setting_of_its_section_is_found():
 def test_settings_reach_the_law_and_the_loop_limits_stay_apart():
     law = make_controller('linear_lqr', q=[10.0, 1.0, 10.0, 1.0], r=0.1, u_max=4.0)
     assert law.settings.q == (10.0, 1.0, 10.0, 1.0) and law.u_max == 4.0
-    assert abs(law.law.gain[2]) > abs(LinearisedLqr().gain[2])   # heavier weight on l - 1
+    # A heavier weight on l - 1 than Q = I, R = 1: a larger gain on it.
+    assert abs(law.law.gain[2]) > abs(LinearisedLqr(q=(1.0,) * 4, r=1.0).gain[2])
     mpc = KoopmanMpc(horizon=3, u_max=4.0)
     assert mpc.horizon == 3 and mpc.input_range[1] == pytest.approx(
         float(mpc.model.input_map(4.0)))

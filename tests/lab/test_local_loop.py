@@ -32,7 +32,7 @@ def test_on_koopman_block_the_cross_tuned_koopman_lqr_had_a_lightly_damped_pair(
     like the MPC's and the LQR's (0.58; all above 0.5)."""
     # The best of the --seed 0 cross-term search on koopman_block (docs/tuning.md, q_cross/seed0:
     # 1.558 on the tuning starts, 1.769 held-out), as its record held it.
-    on_block = {'state_weight': 'state', 'r': 17.21788437579011,
+    on_block = {'model': 'koopman_block', 'state_weight': 'state', 'r': 17.21788437579011,
                 'q': [1.0906204110443527, 0.47611922337262974, 4.903295631422893,
                       0.6892152055768881],
                 'q_cross': [-0.439780571996781, 0.032703788359989466, 0.009686831418962052,

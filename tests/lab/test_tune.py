@@ -364,10 +364,14 @@ def _kill_a_worker_mid_trial(url, proc, timeout=240.0):
 
 
 def _has_tables(url):
+    """Whether the command has made optuna's schema: its alembic stamp is the last thing
+    written (an RDBStorage opened before that races the command to create the same table)."""
     import psycopg
     with psycopg.connect(url) as connection:
-        return connection.execute("SELECT to_regclass('public.studies')").fetchone()[0] \
-            is not None
+        if connection.execute("SELECT to_regclass('public.alembic_version')").fetchone()[0] \
+                is None:
+            return False
+        return connection.execute('SELECT COUNT(*) FROM alembic_version').fetchone()[0] > 0
 
 
 def test_a_sqlite_study_resumes_and_a_refusal_leaves_the_file_alone(tmp_path, capsys):

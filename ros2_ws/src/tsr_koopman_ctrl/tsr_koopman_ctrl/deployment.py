@@ -93,7 +93,7 @@ class Deployment:
 
     law: a registry name (`control.CONTROLLERS`); settings: {section: {setting: value}} for the
     law, 'observer' or 'excitation'; model: a model directory or shipped name for the laws that
-    have one; preset: a settings preset ('tuned_ratio', or a parameter file); plant: a plant
+    have one; preset: a settings preset ('tuned_settle', or a parameter file); plant: a plant
     variant's name, a plant file, or a mapping of plant parameters; x0: the dimensionless start;
     steps: lockstep steps of h = 0.01 tau; namespace: the nodes' ROS namespace; domain: the
     ROS_DOMAIN_ID (default: a random free one); bags: where the bag goes; logs: where the node

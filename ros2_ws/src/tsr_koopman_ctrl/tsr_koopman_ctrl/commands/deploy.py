@@ -32,7 +32,7 @@ def parse_args(argv):
                         help=f'the control law (default {DEFAULT_LAW})')
     parser.add_argument('--model', help='model directory or shipped model name for the laws '
                         'that have a model (default: their `model` setting)')
-    parser.add_argument('--preset', help="a settings preset ('untuned', 'tuned_ratio', "
+    parser.add_argument('--preset', help="a settings preset ('untuned', 'tuned_settle', "
                         "'tuned_cross' under the installed config/, or a parameter file); "
                         '--set applies on top')
     parser.add_argument('--set', action='append', default=[], metavar='SECTION.SETTING=VALUE',
