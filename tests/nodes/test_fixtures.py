@@ -11,8 +11,7 @@ pytest_plugins = ['pytester']
 
 def test_a_loop_in_a_namespace_of_its_own_runs_and_reads_back(tsr_loop):
     loop = tsr_loop(law='linear_lqr', steps=120)
-    loop.ros.spin_until(lambda: loop.status is not None and loop.status.step >= 50,
-                        timeout=60.0, what='50 steps of the loop')
+    loop.wait_for_step(50, timeout=90.0)
     run = loop.finish()
     assert run.loop.namespace == loop.deployment.namespace != '/'
     assert run.loop.step.tolist() == list(range(121))
@@ -25,8 +24,7 @@ def test_a_failing_test_still_stops_its_nodes(pytester, ros_domain):
     pytester.makepyfile(textwrap.dedent('''
         def test_fails_mid_run(tsr_loop):
             loop = tsr_loop(law='linear_lqr', steps=100000, namespace='/teardown_check')
-            loop.ros.spin_until(lambda: loop.status is not None and loop.status.step > 10,
-                                timeout=60.0)
+            loop.wait_for_step(11, timeout=90.0)
             assert False, 'the test fails here'
     '''))
     result = pytester.runpytest_subprocess('-p', 'no:cacheprovider')

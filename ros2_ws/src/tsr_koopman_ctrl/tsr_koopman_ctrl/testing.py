@@ -110,6 +110,19 @@ class RunningLoop:
             SimStatus, wire.resolve(wire.SIM_STATUS_TOPIC, deployment.namespace or '/'),
             lambda msg: setattr(self, 'status', msg), ros_io.LATCHED_QOS)
 
+    def wait_for_step(self, step, timeout=60.0):
+        """Spin until the simulator reports `step`; TimeoutError with each node's last log
+        lines (what the loop was waiting for) after `timeout` s."""
+        try:
+            self.ros.spin_until(lambda: self.status is not None and self.status.step >= step,
+                                timeout=timeout, what=f'step {step} of the loop')
+        except TimeoutError as error:
+            seen = ('no status' if self.status is None
+                    else f'last status at step {self.status.step}')
+            tails = ''.join(f'\n--- {p.name} ({"running" if p.running() else "exited"}):\n'
+                            f'{p.log_tail().rstrip()}' for p in self.deployment.processes)
+            raise TimeoutError(f'{error} ({seen}){tails}') from None
+
     def finish(self):
         self.deployment.wait()
         self.deployment.stop()
