@@ -43,18 +43,6 @@ def run(law, settings, start, steps):
     return row, (np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions)
 
 
-#: Laws whose defaults were not set by tuning (the NMPC's are hand-picked; koopman_nmpc takes
-#: them; both are tuned only for the 'tuned_ratio' preset, koopman_nmpc's search in
-#: docs/tuning.md): where a preset does not name them, their defaults appear once,
-#: as 'defaults'.
-NOT_TUNED = {'physics_nmpc', 'koopman_nmpc'}
-
-#: Laws left out unless named: koopman_nmpc takes 0.13..0.17 s a step here, ~50 min a preset
-#: at the 2000 steps the others run; it settles within 3.4 tau, so it runs on its own with
-#: --steps 700.
-SLOW_LAWS = {'koopman_nmpc'}
-
-
 def compare(laws, presets, steps, theta_max=None):
     """Rows and loops of every law under every preset from every start. `theta_max`: a hard
     swing bound given to the laws that take one (the others are left out)."""
@@ -75,19 +63,13 @@ def compare(laws, presets, steps, theta_max=None):
     preset_values = {name: {} if name == 'tuned' else preset(name)
                      for name in dict.fromkeys(presets)}    # each preset once, in order
     for name, values in preset_values.items():
-        if name != 'tuned' and not (set(values) & set(laws) or NOT_TUNED & set(laws)):
+        if name != 'tuned' and not set(values) & set(laws):
             raise ValueError(f'--presets {name}: sets none of the laws compared '
                              f'({list(laws)}), only {sorted(values)}')
-    defaults_shown = set()
     for name, values in preset_values.items():
         for law in laws:
             label = name
-            if law in NOT_TUNED and law not in values:   # its defaults, once
-                if law in defaults_shown:
-                    continue
-                defaults_shown.add(law)
-                label = 'defaults'
-            elif name != 'tuned' and law not in values:
+            if name != 'tuned' and law not in values:
                 continue    # a preset file shows the laws it names, not defaults under its name
             settings = dict(values.get(law, {}))
             if theta_max is not None:
@@ -147,10 +129,8 @@ def markdown(rows):
 
 def parser():
     p = argparse.ArgumentParser(prog='compare', description=__doc__.split('\n\n')[0])
-    p.add_argument('--law', nargs='+', default=sorted(set(CONTROLLERS) - SLOW_LAWS),
-                   choices=sorted(CONTROLLERS),
-                   help=f'default: every law but {", ".join(sorted(SLOW_LAWS))} (slow: name it, '
-                   'with --steps 700)')
+    p.add_argument('--law', nargs='+', default=sorted(CONTROLLERS), choices=sorted(CONTROLLERS),
+                   help='default: every law')
     p.add_argument('--presets', nargs='+', default=['untuned', 'tuned', 'tuned_settle'],
                    help="settings presets: 'tuned' (the laws' defaults), or a parameter file "
                    "by path or by name under config/ ('untuned', 'tuned_settle', "

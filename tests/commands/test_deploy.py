@@ -79,12 +79,12 @@ def assert_one_time_base(bag_path, steps):
 
 
 def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(tmp_path, ros_domain):
-    """The main job as the README runs it (2000 steps, koopman_mpc, the shipped model)."""
+    """The main job as the README runs it (2000 steps, koopman_nmpc, the shipped model)."""
     steps = 2000
     assert deploy.main(deploy_args(tmp_path, ros_domain, '--steps', str(steps))) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
     loop = read_loop(str(bag_path))
-    want_x, want_u = closed_loop(make_controller('koopman_mpc'), dynamics.PAPER_INITIAL_STATE,
+    want_x, want_u = closed_loop(make_controller('koopman_nmpc'), dynamics.PAPER_INITIAL_STATE,
                                  steps)
     np.testing.assert_allclose(loop.x, want_x, atol=1e-7)
     np.testing.assert_allclose(loop.u[:steps], want_u, atol=1e-7)
@@ -92,7 +92,7 @@ def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(tmp
     assert loop.controller_status.solver_fallbacks == 0
     (run_dir,) = (tmp_path / 'out').iterdir()
     (row,) = json.loads((run_dir / 'summary.json').read_text())
-    assert row['controller'] == 'koopman_mpc' and row['settle_tau'] < 10.0
+    assert row['controller'] == 'koopman_nmpc' and row['settle_tau'] < 4.0
     assert row['frontier_ratio'] == pytest.approx(row['settle_tau'] / row['frontier_tau'])
 
 

@@ -51,22 +51,17 @@ def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):
     assert not (tmp_path / 'none').exists()
 
 
-def test_a_law_with_hand_picked_defaults_runs_once_unless_a_preset_names_it(
-        tmp_path, monkeypatch, capsys):
-    # physics_nmpc's role, played by the fast linear_lqr: 'tuned' and a preset without it give
-    # its defaults once; a preset that names it ('untuned' here) gives its own rows.
-    monkeypatch.setattr(compare, 'NOT_TUNED', {'linear_lqr'})
+def test_a_preset_file_shows_the_laws_it_names(tmp_path, capsys):
+    """A preset file that does not name a law compared leaves it out (rather than running its
+    defaults under the file's name); naming none of them, it is an error, not an empty table."""
     without = tmp_path / 'without.yaml'
     without.write_text('/**:\n  ros__parameters:\n    koopman_mpc:\n      horizon: 4\n')
     assert compare.main(['--law', 'linear_lqr', '--presets', 'tuned', str(without), 'untuned',
                          '--steps', '200', '--out', str(tmp_path)]) == 0
     rows = json.loads((tmp_path / 'comparison.json').read_text())
-    assert [r['preset'] for r in rows] == ['defaults'] * 9 + ['untuned'] * 9
+    assert [r['preset'] for r in rows] == ['tuned'] * 9 + ['untuned'] * 9
     # ... and the untuned rows ran the untuned settings, not the defaults again.
     assert all(a['swing'] != b['swing'] for a, b in zip(rows[:9], rows[9:]))
-    # A preset file that does not name a tuned law leaves it out (rather than running its
-    # defaults under the file's name); naming none of the laws compared, it is an error, not
-    # an empty table.
     (tmp_path / 'comparison.json').unlink()
     assert compare.main(['--law', 'fractional_pd', '--presets', str(without), '--steps', '200',
                          '--out', str(tmp_path)]) == 2

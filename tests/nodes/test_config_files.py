@@ -7,6 +7,7 @@ import pytest
 import yaml
 
 from tsr_koopman_ctrl.commands.config import example_yaml
+from tsr_koopman_ctrl.control.registry import DEFAULT_LAW
 from tsr_koopman_ctrl.launcher import executable
 
 from conftest import ROOT
@@ -90,8 +91,8 @@ def test_controller_from_any_directory_commands_the_plant_with_the_shipped_model
     ros.node.create_subscription(SimStatus, wire.SIM_STATUS_TOPIC, seen.append,
                                  ros_io.LATCHED_QOS)
     ros.spin_until(lambda: seen and seen[-1].commands_accepted >= 50, timeout=30.0,
-                   what='50 koopman_mpc commands accepted by the simulator')
+                   what='50 commands of the default law accepted by the simulator')
     last = seen[-1]
     assert last.rejected_non_finite + last.rejected_negative + last.rejected_over_limit == 0
     log = (tmp_path / 'tsr_controller.log').read_text()
-    assert 'koopman_mpc controller' in log and 'share/tsr_koopman_ctrl/models' in log
+    assert f'{DEFAULT_LAW} controller' in log and 'share/tsr_koopman_ctrl/models' in log

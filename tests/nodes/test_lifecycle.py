@@ -122,9 +122,10 @@ def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, sta
 
 
 def test_a_reset_run_repeats_the_first(ros, start_node):
-    """The default law (koopman_mpc, offset-free: an observer with memory) from the paper's
-    start, then `tsr/reset` back to it: the controller sees the step go back, resets the law
-    and its observer, and the second run repeats the first within 1e-6."""
+    """The default law (koopman_nmpc, warm-started from its last plan, offset-free: an
+    observer with memory) from the paper's start, then `tsr/reset` back to it: the controller
+    sees the step go back, resets the law and its observer, and the second run repeats the
+    first within 1e-6."""
     from tsr_msgs.srv import ResetSim
     steps = 200
     start_node('tsr_sim', 'sim_node', 'tsr_sim',

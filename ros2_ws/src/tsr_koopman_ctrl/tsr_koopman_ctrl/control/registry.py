@@ -10,7 +10,7 @@ from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
 from tsr_koopman_ctrl.control.settings import build
 
 #: The law the controller node, deploy and the main job run unless told otherwise.
-DEFAULT_LAW = 'koopman_mpc'
+DEFAULT_LAW = 'koopman_nmpc'
 CONTROLLERS = {law.name: law for law in (LinearisedLqr, FractionalOrderPd, KoopmanLqr,
                                          KoopmanMpc, KoopmanNmpc, PhysicsNmpc)}
 #: The controller's settings sections that are not laws: the observer (offset-free control)
