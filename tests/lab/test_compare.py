@@ -56,12 +56,15 @@ def test_a_preset_file_shows_the_laws_it_names(tmp_path, capsys):
     defaults under the file's name); naming none of them, it is an error, not an empty table."""
     without = tmp_path / 'without.yaml'
     without.write_text('/**:\n  ros__parameters:\n    koopman_mpc:\n      horizon: 4\n')
-    assert compare.main(['--law', 'linear_lqr', '--presets', 'tuned', str(without), 'untuned',
-                         '--steps', '200', '--out', str(tmp_path)]) == 0
+    assert compare.main(['--law', 'linear_lqr', 'koopman_mpc', '--presets', 'tuned',
+                         str(without), 'untuned', '--steps', '200', '--out', str(tmp_path)]) == 0
     rows = json.loads((tmp_path / 'comparison.json').read_text())
-    assert [r['preset'] for r in rows] == ['tuned'] * 9 + ['untuned'] * 9
+    lqr = [r for r in rows if r['law'] == 'linear_lqr']
+    assert [r['preset'] for r in lqr] == ['tuned'] * 9 + ['untuned'] * 9
     # ... and the untuned rows ran the untuned settings, not the defaults again.
-    assert all(a['swing'] != b['swing'] for a, b in zip(rows[:9], rows[9:]))
+    assert all(a['swing'] != b['swing'] for a, b in zip(lqr[:9], lqr[9:]))
+    assert [r['preset'] for r in rows if r['law'] == 'koopman_mpc'] == \
+        ['tuned'] * 9 + [str(without)] * 9 + ['untuned'] * 9
     (tmp_path / 'comparison.json').unlink()
     assert compare.main(['--law', 'fractional_pd', '--presets', str(without), '--steps', '200',
                          '--out', str(tmp_path)]) == 2
@@ -167,16 +170,15 @@ def test_the_cross_term_preset_holds_each_law_s_best_search():
 
 def test_the_comparison_page_shows_what_the_command_runs_by_default():
     """docs/comparison.md's headline table has a column for every law the command runs without
-    options (all but the slow koopman_nmpc, which has its own commands), and the page shows
-    that command and the NMPC's."""
+    options (every law), and the page shows that command."""
     from conftest import ROOT
+    from tsr_koopman_ctrl.control import CONTROLLERS
     defaults = compare.parser().parse_args([])
-    assert 'koopman_nmpc' not in defaults.law
-    assert defaults.presets == ['untuned', 'tuned', 'tuned_ratio']
+    assert sorted(defaults.law) == sorted(CONTROLLERS)
+    assert defaults.presets == ['untuned', 'tuned', 'tuned_settle']
     head = next(line for line in (ROOT / 'docs' / 'comparison.md').read_text().splitlines()
                 if line.startswith('| x0 | `linear_lqr`'))
     columns = [cell.strip().strip('`') for cell in head.strip('|').split('|')][1:]
     assert sorted(columns) == sorted(defaults.law)
     page = (ROOT / 'docs' / 'comparison.md').read_text()
     assert 'python -m lab.compare --out lab/results/comparison ' in page
-    assert 'python -m lab.compare --law koopman_nmpc' in page

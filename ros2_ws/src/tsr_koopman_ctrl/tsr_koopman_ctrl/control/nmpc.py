@@ -55,7 +55,7 @@ from tsr_sim import dynamics
 from tsr_koopman_ctrl.control.law import Law, planar_state
 from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
 from tsr_koopman_ctrl.control.prediction_maps import LearnedMap, PhysicsMap
-from tsr_koopman_ctrl.control.settings import default_of_its_own, LawSettings, setting
+from tsr_koopman_ctrl.control.settings import LawSettings, setting
 
 #: Lead intervals in units of h (the first is h: the optimised move is the flown one).
 LEAD_STEPS = (1, 2, 3, 4)
@@ -108,11 +108,13 @@ class NmpcSettings(LawSettings):
     # 0.8 by default: the swing bound every law is tuned and compared under (lab/tune.py).
     theta_max: float = setting(0.8, 'bound on |theta| at every prediction node, soft with a '
                                'stiff penalty [rad]; >= pi: no bound', low=0.01, high=3.2)
-    # Hand-picked (config/untuned.yaml); each backend defaults to the best of its own 100-trial
-    # frontier-ratio search (docs/tuning.md).
-    q: tuple = setting((10.0, 1.0, 10.0, 1.0), "stage weights on the smoothed |.| of "
+    # One cost for both backends, so that the physics NMPC measures what the learned model
+    # costs: koopman_nmpc's 101-trial frontier-ratio search (docs/tuning.md says why not the
+    # best of the latest search: it loses the zone on a lagging actuator).
+    q: tuple = setting((4.71, 4.798, 8.406, 7.511), "stage weights on the smoothed |.| of "
                        "[theta, theta', ln l, l']", low=0.0, tune=(1e-1, 1e2, 'log'))
-    r: float = setting(0.1, 'stage weight on (u - 3)^2', low=1e-9, tune=(1e-3, 1e1, 'log'))
+    r: float = setting(0.07805, 'stage weight on (u - 3)^2', low=1e-9,
+                       tune=(1e-3, 1e1, 'log'))
     overshoot_max: float = setting(0.005, 'bound on l - 1 at every prediction node (soft); '
                                    '>= 10: none', low=0.0, high=10.0)
     smoothing: float = setting(0.01, "the 1-norm's smoothing eps in sqrt(y^2 + eps^2)",
@@ -440,8 +442,6 @@ def condense(nodes, end, a, b):
 @dataclasses.dataclass(frozen=True)
 class PhysicsNmpcSettings(NmpcSettings):
     law: ClassVar[str] = 'physics_nmpc'
-    q: tuple = default_of_its_own(NmpcSettings, 'q', (2.955, 33.17, 94.33, 2.223))
-    r: float = default_of_its_own(NmpcSettings, 'r', 0.01461)
 
 
 class PhysicsNmpc(Nmpc):
@@ -457,8 +457,6 @@ class PhysicsNmpc(Nmpc):
 @dataclasses.dataclass(frozen=True)
 class KoopmanNmpcSettings(NmpcSettings):
     law: ClassVar[str] = 'koopman_nmpc'
-    q: tuple = default_of_its_own(NmpcSettings, 'q', (8.215, 41.61, 39.18, 16.53))
-    r: float = default_of_its_own(NmpcSettings, 'r', 0.1344)
     model: str = setting(MODEL, 'model directory, or the name of a shipped model')
     sensitivities: str = setting('start', "each interval's sensitivities: 'exact' (the "
                                  "one-step Jacobians at every sample, chained) or 'start' "

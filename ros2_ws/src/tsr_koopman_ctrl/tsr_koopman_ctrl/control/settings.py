@@ -25,15 +25,6 @@ def setting(default, description, low=None, high=None, choices=None, tune=None,
         'searched': searched})
 
 
-def default_of_its_own(base, name, default):
-    """A subclass's field that keeps `base`'s declaration of `name` (description, range, search
-    space) with a default of its own: one declaration where laws share a setting but are tuned
-    apart."""
-    if isinstance(default, list):
-        default = tuple(default)
-    return dataclasses.field(default=default, metadata=base.__dataclass_fields__[name].metadata)
-
-
 def cross_weight_setting(search_bound=10.0):
     """The state weight's cross terms, declared once for every law with a quadratic cost on
     the state (`control.lqr.state_cost_matrix`); lab/tune.py searches each in
