@@ -16,7 +16,8 @@ from conftest import ROOT
 MANIFEST = ROOT / 'lab' / 'manifest.yaml'
 ENTRIES = yaml.safe_load(MANIFEST.read_text())['results']
 RESULTS = 'lab/results/'
-STUDIES = ('compare', 'tune', 'robustness', 'frontier', 'prediction', 'data_loop', 'mpc_sweep')
+STUDIES = ('compare', 'tune', 'robustness', 'frontier', 'prediction', 'data_loop', 'mpc_sweep',
+           'main_job')
 
 
 def words(command):
