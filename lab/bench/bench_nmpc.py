@@ -27,6 +27,8 @@ Every time is also given as a multiple of it (the machine's speed varies from ru
 """
 
 import argparse
+import os
+import sys
 import time
 
 import numpy as np
@@ -36,7 +38,9 @@ from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS
 
-from lab.bench.yardstick import seconds as yardstick
+# Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.yardstick import seconds as yardstick  # noqa: E402
 
 PARTS = ('shift', 'intervals', 'condense', 'QP')
 

@@ -19,6 +19,8 @@ One process, single-threaded numpy: run with OMP_NUM_THREADS=1 OPENBLAS_NUM_THRE
 
 import argparse
 import json
+import os
+import sys
 
 import numpy as np
 from tsr_sim import dynamics
@@ -29,7 +31,9 @@ from tsr_koopman_ctrl.control.settings import parse_value
 from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, frontier_tau, HELD_OUT_STARTS,
                                          run_figures)
 
-from lab.bench.yardstick import seconds as yardstick
+# Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.yardstick import seconds as yardstick  # noqa: E402
 
 STARTS = COMPARISON_STARTS + HELD_OUT_STARTS
 ROBUSTNESS_STARTS = COMPARISON_STARTS + HELD_OUT_STARTS[:2]   # lab/robustness.py's
