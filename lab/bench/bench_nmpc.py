@@ -34,8 +34,7 @@ import time
 import numpy as np
 
 from tsr_koopman_ctrl.control import closed_loop, make_controller, nmpc
-from tsr_koopman_ctrl.control.registry import law_class
-from tsr_koopman_ctrl.control.settings import parse_value
+from tsr_koopman_ctrl.commands.deploy import parsed_settings
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS
 
 # Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
@@ -95,11 +94,9 @@ def main(argv=None):
     args = parser.parse_args(argv)
     start = (COMPARISON_STARTS + HELD_OUT_STARTS)[args.start]
     overrides = {law: {} for law in args.law}
-    for item in args.set:
-        key, _, text = item.partition('=')
-        law, _, name = key.partition('.')
+    for law, values in parsed_settings(args.set).items():   # deploy's --set, parsed alike
         if law in overrides:
-            overrides[law][name] = parse_value(law_class(law).Settings, name, text)
+            overrides[law].update(values)
     # condense is a module function: timed through the module
     spent = []
     condense = nmpc.condense

@@ -26,8 +26,7 @@ import numpy as np
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control import closed_loop, make_controller
-from tsr_koopman_ctrl.control.registry import law_class
-from tsr_koopman_ctrl.control.settings import parse_value
+from tsr_koopman_ctrl.commands.deploy import parsed_settings
 from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, frontier_tau, HELD_OUT_STARTS,
                                          run_figures)
 
@@ -76,11 +75,9 @@ def main(argv=None):
     parser.add_argument('--out')
     args = parser.parse_args(argv)
     overrides = {law: {} for law in args.law}
-    for item in args.set:
-        key, _, text = item.partition('=')
-        law, _, name = key.partition('.')
+    for law, values in parsed_settings(args.set).items():   # deploy's --set, parsed alike
         if law in overrides:
-            overrides[law][name] = parse_value(law_class(law).Settings, name, text)
+            overrides[law].update(values)
     if args.suite == 'swing0.4':
         for law in args.law:
             overrides[law].setdefault('theta_max', 0.4)
