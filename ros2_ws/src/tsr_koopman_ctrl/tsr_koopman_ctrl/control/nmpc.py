@@ -109,8 +109,8 @@ class NmpcSettings(LawSettings):
     theta_max: float = setting(0.8, 'bound on |theta| at every prediction node, soft with a '
                                'stiff penalty [rad]; >= pi: no bound', low=0.01, high=3.2)
     # One cost for both backends, so that the physics NMPC measures what the learned model
-    # costs: koopman_nmpc's 101-trial frontier-ratio search (docs/tuning.md says why not the
-    # best of the latest search: it loses the zone on a lagging actuator).
+    # costs: a frontier-ratio search's best for koopman_nmpc that also holds on a lagging
+    # actuator (docs/tuning.md).
     q: tuple = setting((4.71, 4.798, 8.406, 7.511), "stage weights on the smoothed |.| of "
                        "[theta, theta', ln l, l']", low=0.0, tune=(1e-1, 1e2, 'log'))
     r: float = setting(0.07805, 'stage weight on (u - 3)^2', low=1e-9,
