@@ -103,6 +103,18 @@ def test_the_float32_map_agrees_with_the_float64_one(model):
     np.testing.assert_allclose(a, exact[1], atol=1e-4)
 
 
+def assert_the_gains_predict_the_rollout(law, x, plan, nodes, gains):
+    """A change du of `plan` moves its rollout from x (`nodes`) by gains @ du to second order:
+    halving du quarters the remainder."""
+    du = np.random.default_rng(0).normal(size=len(plan))
+    errors = []
+    for scale in (1e-2, 5e-3):
+        moved = law.rollout(x, plan + scale * du)
+        errors.append(np.abs(moved - (nodes + scale * gains @ du)).max())
+    assert errors[1] < 0.3 * errors[0]
+    assert errors[0] < 0.05 * 1e-2 * np.abs(gains @ du).max()
+
+
 @pytest.mark.parametrize('law', ['physics', 'learned'])
 def test_the_condensed_nodes_predict_the_rollout_to_first_order(law):
     """From a plan's own rollout (no defects) the condensed prediction is the rollout, and a
@@ -115,13 +127,7 @@ def test_the_condensed_nodes_predict_the_rollout_to_first_order(law):
     end, a, b = nmpc_law.map.interval(nodes[:-1], plan, nmpc_law.counts)
     predicted, gains = nmpc.condense(nodes, end, a, b)
     np.testing.assert_allclose(predicted, nodes, atol=1e-12)
-    du = np.random.default_rng(0).normal(size=len(plan))
-    errors = []
-    for scale in (1e-2, 5e-3):
-        moved = nmpc_law.rollout(x, plan + scale * du)
-        errors.append(np.abs(moved - (nodes + scale * gains @ du)).max())
-    assert errors[1] < 0.3 * errors[0]
-    assert errors[0] < 0.05 * 1e-2 * np.abs(gains @ du).max()
+    assert_the_gains_predict_the_rollout(nmpc_law, x, plan, nodes, gains)
 
 
 def test_defects_enter_the_condensed_prediction_as_affine_terms():
@@ -312,13 +318,7 @@ def test_the_condensed_gains_chain_through_the_lag():
     predicted, gains = nmpc.condense(nodes, end, a, b)
     np.testing.assert_allclose(predicted, nodes, atol=1e-12)
     gains = law.tension_gains(gains)
-    du = np.random.default_rng(0).normal(size=len(plan))
-    errors = []
-    for scale in (1e-2, 5e-3):
-        moved = law.rollout(x, plan + scale * du)
-        errors.append(np.abs(moved - (nodes + scale * gains @ du)).max())
-    assert errors[1] < 0.3 * errors[0]
-    assert errors[0] < 0.05 * 1e-2 * np.abs(gains @ du).max()
+    assert_the_gains_predict_the_rollout(law, x, plan, nodes, gains)
 
 
 def test_planning_with_the_actuator_lag_settles_a_strong_lagging_actuator():
