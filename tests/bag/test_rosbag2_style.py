@@ -140,7 +140,7 @@ def test_a_stock_bag_of_another_definition_is_refused_in_one_line(tmp_path, monk
         recorded.read_windows(path, steps=30)
     assert str(caught.value) == (
         f'{path}: tsr_msgs/msg/TsrState was recorded with another message definition than the '
-        "installed one (tsr_msgs/TsrState declaration 10: 'float64 extra' in the bag, nothing "
+        "installed one (tsr_msgs/TsrState declaration 11: 'float64 extra' in the bag, nothing "
         'installed)')
 
 

@@ -58,7 +58,7 @@ def test_the_bare_mpc_misses_the_zone_with_a_10_percent_gain_error_and_offset_fr
     bare, states, _ = settle(KoopmanMpc(), GAIN_ERROR)
     assert bare is None and abs(states[-1, dynamics.LENGTH_OFFSET]) > 0.01   # out of the zone
     nominal, _, _ = settle(make_controller('koopman_mpc'))
-    law = make_controller('koopman_mpc')
+    law = make_controller('koopman_mpc', supervisor='none')
     disturbed, _, _ = settle(law, GAIN_ERROR)
     assert disturbed is not None and disturbed <= 1.05 * nominal
     assert law.disturbance == pytest.approx(0.9, abs=1e-3)
@@ -82,7 +82,7 @@ def test_on_the_nominal_plant_the_physics_observer_changes_nothing_and_the_model
 
 
 def test_the_mpc_bounds_follow_the_estimated_gain():
-    law = make_controller('koopman_mpc')
+    law = make_controller('koopman_mpc', supervisor='none')
     law.observer.update(np.zeros(4), None)
     law.observer.estimate[-1] = 0.8
     law.compute(np.zeros(4))

@@ -53,13 +53,14 @@ def _header(seconds):
 def state_cdr(x, step, scale=SCALE):
     si = scale.state_to_si(np.asarray(x, dtype=float))
     return _cdr('tsr_msgs/msg/TsrState', header=_header(scale.tau_to_seconds(step * H)),
-                step=int(step), theta=si[0], theta_rate=si[1], length=si[2], length_rate=si[3],
-                has_out_of_plane=False, beta=0.0, beta_rate=0.0)
+                step=int(step), run=0, theta=si[0], theta_rate=si[1], length=si[2],
+                length_rate=si[3], has_out_of_plane=False, beta=0.0, beta_rate=0.0)
 
 
 def tension_cdr(u, step, scale=SCALE, type_name='tsr_msgs/msg/TensionCommand'):
+    hold = {'hold': False} if type_name.endswith('TensionCommand') else {}
     return _cdr(type_name, header=_header(0.0), step=int(step),
-                tension=float(scale.u_to_tension(u)))
+                tension=float(scale.u_to_tension(u)), **hold)
 
 
 def run_info_cdr(role, configuration):
@@ -348,8 +349,8 @@ def test_a_halted_run_stays_halted_after_the_reset_s_status(tmp_path):
 
     def status(code, step):
         return ('/tsr/sim_status', _cdr('tsr_msgs/msg/SimStatus', header=_header(0.0),
-                                        status=code, message='', step=step,
-                                        commands_accepted=0, rejected_non_finite=0,
+                                        status=code, message='', step=step, run=0,
+                                        holding=False, commands_accepted=0, rejected_non_finite=0,
                                         rejected_negative=0, rejected_over_limit=0,
                                         rejected_stale=0, command_timeouts=0))
     first, second = bag.read_runs(write_messages(
@@ -414,12 +415,12 @@ def test_another_message_definition(tmp_path):
     assert changed != installed
     message = bad(write_loop(tmp_path / 'b', x, u, state_definition=changed, state_hash=''),
                   'TsrState was recorded with another message definition')
-    assert ("tsr_msgs/TsrState declaration 5: 'float32 length' in the bag, 'float64 length' "
+    assert ("tsr_msgs/TsrState declaration 6: 'float32 length' in the bag, 'float64 length' "
             'installed') in message
     swapped = installed.replace('float64 beta ', 'float64 tmp ').replace(
         'float64 beta_rate', 'float64 beta').replace('float64 tmp ', 'float64 beta_rate ')
     bad(write_loop(tmp_path / 'c', x, u, state_definition=swapped, state_hash=''),
-        "declaration 8: 'float64 beta_rate' in the bag, 'float64 beta' installed")
+        "declaration 9: 'float64 beta_rate' in the bag, 'float64 beta' installed")
     other_hash = 'RIHS01_' + '0' * 64
     message = bad(write_loop(tmp_path / 'd', x, u, state_hash=other_hash),
                   f'type hash {other_hash} in the bag, RIHS01_')

@@ -179,6 +179,20 @@ def in_domain(x):
         return np.all(np.isfinite(x), axis=-1) & (x[..., LENGTH_OFFSET] > -1.0)
 
 
+#: How fast the reel hold (`hold_tension`) stops the tether, 1/tau: l'' = -HOLD_GAIN l'.
+HOLD_GAIN = 5.0
+
+
+def hold_tension(x, gain=HOLD_GAIN, u_max=TENSION_LIMIT):
+    """The tension of the reel hold: what a deployer does on its own when its controller stops
+    (a reel speed loop to zero, as a brake would): u = l''(u = 0) + gain l', so that
+    l'' = -gain l' (the length held once the reel has stopped; theta librates freely at that
+    length), clamped to [0, u_max]: a tether cannot push, the reel cannot pull past its limit."""
+    x = np.asarray(x, dtype=float)
+    free = derivative(x, 0.0)[..., LENGTH_RATE]
+    return np.clip(free + gain * x[..., LENGTH_RATE], 0.0, u_max)
+
+
 def linearise(x=None, u=EQUILIBRIUM_TENSION):
     """Return the Jacobians (A, B) of the planar model at (x, u): dx' = A dx + B du.
 

@@ -5,6 +5,7 @@ reject and why) and about the state (advance, or halt outside the model's domain
 so it is tested without ROS and a hardware driver can reuse the same checks.
 """
 
+import dataclasses
 from dataclasses import dataclass, field
 import enum
 import math
@@ -52,6 +53,9 @@ class PlantConfig:
     seed: int = 0
     #: How the true plant differs from the nominal model (off by default; `variants`).
     variant: variants.PlantVariant = field(default_factory=variants.PlantVariant)
+    #: The reel hold's gain (`dynamics.hold_tension`), 1/tau: what the plant does on its own
+    #: when its controller stops; 0: no hold (the plant flies the last tension it was given).
+    hold_gain: float = dynamics.HOLD_GAIN
 
     def __post_init__(self):
         self.initial_state = np.asarray(self.initial_state, dtype=float)
@@ -66,6 +70,8 @@ class PlantConfig:
             raise ValueError(f'max_tension must be > 0, got {self.max_tension}')
         if not self.max_swing > 0.0:
             raise ValueError(f'max_swing must be > 0, got {self.max_swing}')
+        if not (self.hold_gain >= 0.0 and math.isfinite(self.hold_gain)):
+            raise ValueError(f'hold_gain must be finite and >= 0, got {self.hold_gain}')
         if self.variant.eccentricity > 0.0 and self.initial_state.size != dynamics.PLANAR_DIM:
             raise ValueError('the eccentric-orbit variant is planar only')
         for name in ('process_noise_std', 'sensor_noise_std'):
@@ -103,6 +109,10 @@ PLANT_PARAMETERS = {
                      None, None),
     'initial_beta': ([0.0, 0.0], "out_of_plane: [beta, beta'] at the start (rad, "
                      'dimensionless rate)', None, None),
+    'hold_gain': (dynamics.HOLD_GAIN, "the reel hold engaged when the controller stops or is "
+                  "lost: l'' = -hold_gain l' (a speed loop to zero, as a brake; the tension "
+                  'within [0, max_tension]) [1/tau]; 0: no hold, the last tension is held',
+                  0.0, 1e3),
 }
 
 
@@ -117,10 +127,12 @@ SIMULATOR_PARAMETERS = {
               'set by the plant parameters, e.g. from config/plants/<name>.yaml)', None, None),
     'max_tension': (None, f'largest accepted tension [N] (default: u = '
                     f'{dynamics.TENSION_LIMIT:g})', 1e-9, 1e9),
-    'command_timeout': (1.0, 'timed mode: wall seconds without a valid command before '
-                        'safe_tension is applied', 0.001, 3600.0),
-    'safe_tension': (None, 'timed mode: tension [N] applied on command timeout (default: the '
-                     'equilibrium tension u = 3)', 0.0, 1e9),
+    'command_timeout': (1.0, 'timed mode: wall seconds without a valid command before the '
+                        'plant holds (the reel hold, or safe_tension without one)', 0.001,
+                        3600.0),
+    'safe_tension': (None, 'timed mode, a plant without a reel hold (hold_gain 0): tension [N] '
+                     'held when the controller stops or is lost (default: the equilibrium '
+                     'tension u = 3)', 0.0, 1e9),
     'republish_period': (0.5, 'lockstep: wall seconds without a command before the state is '
                          'published again', 0.01, 60.0),
     'progress_every': (100, 'log a progress line every N steps (0: never)', 0, 10 ** 9),
@@ -130,6 +142,9 @@ SIMULATOR_PARAMETERS = {
     'exit_on_finish': (False, 'shut the node down when max_steps is reached or the state '
                        'leaves the domain', None, None),
     'rate_hz': (100.0, 'timed: simulation steps per wall second', 0.01, 1e5),
+    'wait_for_publishers': (1, 'timed: the clock starts once this many writers of tension '
+                            'commands (a controller) have matched, at the DDS level (0: at '
+                            'once)', 0, 1000),
     'frame_id': (STATE_FRAME, 'frame of the published state (header.frame_id): the orbital '
                  'frame', None, None),
 }
@@ -173,7 +188,8 @@ def config_from_parameters(values, scale=None):
         max_tension=values.get('max_tension', scale.u_to_tension(dynamics.TENSION_LIMIT)),
         max_steps=v['max_steps'], max_swing=v['max_swing'],
         process_noise_std=noise(v['process_noise_std']),
-        sensor_noise_std=noise(v['sensor_noise_std']), seed=v['seed'], variant=variant)
+        sensor_noise_std=noise(v['sensor_noise_std']), seed=v['seed'], variant=variant,
+        hold_gain=v['hold_gain'])
 
 
 class Plant:
@@ -184,6 +200,7 @@ class Plant:
         self._rng = np.random.default_rng(config.seed)
         self.counters = {reason: 0 for reason in Rejection}
         self.accepted = 0
+        self.run = -1          # the first reset starts run 0
         error = self.reset(config.initial_state)
         if error is not None:
             raise ValueError(f'initial_state {config.initial_state.tolist()}: {error}')
@@ -206,6 +223,7 @@ class Plant:
         self.actuator = None   # the actuator starts at rest on the first command
         self.anomaly = self.config.variant.initial_anomaly
         self.step_index = 0
+        self.run += 1
         self.status = Status.RUNNING
         self.message = 'running'
         return None
@@ -231,12 +249,30 @@ class Plant:
             self.counters[rejection] += 1
         return rejection
 
-    def advance(self, tension):
-        """Advance one sample period under `tension` [N], already checked by the caller."""
+    def hold_tension(self):
+        """The tension [N] the reel hold applies now (`dynamics.hold_tension` on the true
+        state, within [0, max_tension]), or None for a plant without a hold."""
+        if not self.config.hold_gain:
+            return None
+        scale = self.config.scale
+        u_max = scale.tension_to_u(self.config.max_tension)
+        return scale.u_to_tension(float(dynamics.hold_tension(
+            self.state, self.config.hold_gain, u_max if math.isfinite(u_max) else np.inf)))
+
+    def advance(self, tension, hold=False):
+        """Advance one sample period under `tension` [N], already checked by the caller; with
+        `hold`, under the reel hold instead (`hold_tension`, evaluated at the sample's start),
+        which acts on the tether directly: the actuator's gain, bias and lag are the tension
+        controller's, not the hold's."""
         if self.status is not Status.RUNNING:
             return
-        u = self.config.scale.tension_to_u(tension)
         variant = self.config.variant
+        held = self.hold_tension() if hold else None
+        if held is not None:
+            tension = held
+            variant = dataclasses.replace(variant, actuator_gain=1.0, actuator_bias=0.0,
+                                          actuator_lag=0.0)
+        u = self.config.scale.tension_to_u(tension)
         if variant.nominal:
             nxt = dynamics.step(self.state, u, self.config.step, self.config.substeps)
         else:

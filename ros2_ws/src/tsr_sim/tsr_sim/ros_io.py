@@ -152,6 +152,18 @@ class MatchedReaders:
         self.count = status.current_count
 
 
+class MatchedWriters:
+    """The writers a subscription has matched at the DDS level (its `matched` events)."""
+
+    def __init__(self):
+        from rclpy.event_handler import SubscriptionEventCallbacks
+        self.count = 0
+        self.callbacks = SubscriptionEventCallbacks(matched=self.on_matched)
+
+    def on_matched(self, status):
+        self.count = status.current_count
+
+
 class Health:
     """A node's health on /diagnostics (diagnostic_msgs/DiagnosticArray), once a second on
     the steady clock: `report()` returns (level, message, {key: value}), level one of

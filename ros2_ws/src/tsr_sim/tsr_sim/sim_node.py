@@ -9,15 +9,22 @@ Modes:
             controller's answer to that repeat, a copy of the command already accepted, is
             dropped without a word, and so is a command that answers no state (`wire.NO_STEP`:
             the controller's safe tension).
-  timed     advance at `rate_hz` wall-clock steps per second (time scale = rate_hz * step /
-            Omega sim seconds per wall second) holding the latest command; with no valid command
-            for `command_timeout` wall seconds, apply `safe_tension` and count a timeout.
+  timed     the rehearsal for hardware: advance at `rate_hz` wall-clock steps per second (time
+            scale = rate_hz * step / Omega sim seconds per wall second) holding the latest
+            command, whenever it comes. The clock starts once `wait_for_publishers` writers of
+            tension commands (a controller) have matched, at the DDS level; until then the
+            first state is published and nothing moves. A stop engages the plant's reel hold
+            (`Plant.hold_tension`: the reel stopped by its own speed loop, the length then held,
+            as a brake would; `hold_gain` 0: `safe_tension` instead): a command with `hold`
+            set (the controller was deactivated or shut down, or sees no state), and no valid
+            command for `command_timeout` wall seconds (a lost controller: counted). The next
+            command without `hold` releases it.
 
 The simulator is the clock: /clock carries the plant's time (t = tau / Omega), from the start
 and while it waits, so nodes on sim time start too. Its own timers run on the steady clock, so
 it runs with `use_sim_time` true or false. A state that leaves the model's domain or tumbles
 (|theta| > `max_swing`) halts the run (status HALTED_OUT_OF_DOMAIN, an ERROR on /diagnostics);
-`tsr/reset` starts a new run from step 0. Parameters that shape the plant or the run are
+`tsr/reset` starts a new run from step 0, with the next run number (TsrState.run, SimStatus.run). Parameters that shape the plant or the run are
 read-only on a running node; the scheduling ones are applied when set (`LIVE`).
 
 All maths and command checks are in tsr_sim.plant (ROS-free); this file converts and schedules.
@@ -38,15 +45,15 @@ from tsr_sim import dynamics
 from tsr_sim.plant import (config_from_parameters, Plant, PLANT_PARAMETERS, Rejection,
                            SIMULATOR_PARAMETERS, Status)
 from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, Health, LATCHED_QOS,
-                            LOOP_PUBLISHER_QOS, MatchedReaders, Parameters, run_node,
-                            steady_timer)
+                            LOOP_PUBLISHER_QOS, MatchedReaders, MatchedWriters, Parameters,
+                            run_node, steady_timer)
 from tsr_sim.wire import (CLOCK_TOPIC, NO_STEP, RESET_SERVICE, RUN_INFO_TOPIC, run_info_msg,
                           scale_dict, SIM_STATUS_TOPIC, STATE_TOPIC, state_to_msg,
                           TENSION_TOPIC)
 
 #: Parameters applied when set on a running simulator; the others are read-only there.
 LIVE = ('rate_hz', 'command_timeout', 'safe_tension', 'republish_period', 'progress_every',
-        'wait_for_subscribers', 'exit_on_finish', 'max_steps')
+        'wait_for_subscribers', 'wait_for_publishers', 'exit_on_finish', 'max_steps')
 #: Republish periods without the first command of a run before the lockstep simulator warns:
 #: a controller's first solve or a late discovery takes a moment, which is no reason to warn.
 IDLE_WARNING_PERIODS = 10
@@ -73,6 +80,8 @@ class SimNode(Node):
         self.wait_for_subscribers = self._declare('wait_for_subscribers')
         self.exit_on_finish = self._declare('exit_on_finish')
         self.rate_hz = self._declare('rate_hz')
+        self.wait_for_publishers = self._declare('wait_for_publishers')
+        self.holding = False        # the reel hold is engaged (timed)
         self.done = False   # run_node stops spinning once set
         self.last_accepted = None   # (step, tension) of the last command accepted in lockstep
         self.accepted_at_start = 0  # commands accepted before this run began
@@ -83,13 +92,16 @@ class SimNode(Node):
                                                event_callbacks=self.readers.callbacks)
         self.status_pub = self.create_publisher(SimStatus, SIM_STATUS_TOPIC, LATCHED_QOS)
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
-        self.create_subscription(TensionCommand, TENSION_TOPIC, self.on_command, COMMAND_QOS)
+        self.writers = MatchedWriters()
+        self.create_subscription(TensionCommand, TENSION_TOPIC, self.on_command, COMMAND_QOS,
+                                 event_callbacks=self.writers.callbacks)
         self.create_service(ResetSim, RESET_SERVICE, self.on_reset)
         self.create_publisher(RunInfo, RUN_INFO_TOPIC, LATCHED_QOS).publish(run_info_msg(
             self.get_fully_qualified_name(), 'simulator', self.configuration(),
             self.sim_stamp()))
 
         self.held_tension = self.safe_tension
+        self.started = False        # timed: the clock has started (a controller matched)
         self.command_timeouts = 0
         self.last_command_wall = self.state_published_wall = time.monotonic()
         self.next_idle_warning = 0.0
@@ -114,6 +126,8 @@ class SimNode(Node):
         self.parameters.live('progress_every', lambda v: setattr(self, 'progress_every', v))
         self.parameters.live('wait_for_subscribers',
                              lambda v: setattr(self, 'wait_for_subscribers', v))
+        self.parameters.live('wait_for_publishers',
+                             lambda v: setattr(self, 'wait_for_publishers', v))
         self.parameters.live('exit_on_finish', lambda v: setattr(self, 'exit_on_finish', v))
         self.parameters.live('max_steps', self.set_max_steps)
         self.get_logger().info(
@@ -194,9 +208,10 @@ class SimNode(Node):
         if step is not None and (step, msg.tension) == self.last_accepted:
             return   # the answer to a republished state: this command was applied already
         if step == NO_STEP:
-            # The controller's safe tension: it saw no state for a while (e.g. it started first).
-            # Lockstep waits for the answer to its state; the republished state will get one.
-            self.get_logger().info(f'lockstep: ignored the safe tension {msg.tension:.4g} N '
+            # The controller's stop (or safe tension when it saw no state): lockstep waits for
+            # the answer to its state, so the plant does not move; the republished state will
+            # get one.
+            self.get_logger().info(f'lockstep: ignored the stop command {msg.tension:.4g} N '
                                    '(it answers no state)', throttle_duration_sec=5.0)
             return
         rejection = self.plant.accept(msg.tension, step)
@@ -215,17 +230,39 @@ class SimNode(Node):
             self.step(msg.tension)
         else:
             self.held_tension = msg.tension
+            self.set_holding(msg.hold, 'the controller stopped')
+
+    def set_holding(self, holding, why=''):
+        """Engage (with the reason) or release the reel hold (timed)."""
+        if holding == self.holding:
+            return
+        self.holding = holding
+        if not holding:
+            self.get_logger().info('commanded again: hold released')
+        elif self.plant.config.hold_gain:
+            self.get_logger().warning(f'{why}: reel hold engaged')
+        else:
+            self.held_tension = self.safe_tension
+            self.get_logger().warning(f'{why}: safe tension {self.safe_tension:.4g} N held')
+        self.publish_status()
 
     def on_tick(self):
         if self.plant.status is not Status.RUNNING:
             return
-        if time.monotonic() - self.last_command_wall > self.command_timeout:
+        if not self.started and self.writers.count < self.wait_for_publishers:
+            self.get_logger().info(f'timed: waiting for {self.wait_for_publishers} writers of '
+                                   f'{TENSION_TOPIC} ({self.writers.count} matched) before the '
+                                   'clock starts', throttle_duration_sec=5.0)
+            self.last_command_wall = time.monotonic()
+            self.publish_clock()
+            self.publish_state()
+            return
+        self.started = True
+        if time.monotonic() - self.last_command_wall > self.command_timeout \
+                and not self.holding:
             self.command_timeouts += 1
-            self.held_tension = self.safe_tension
-            self.get_logger().warning(
-                f'no valid tension command for {self.command_timeout} s: applying safe '
-                f'tension {self.safe_tension:.4g} N', throttle_duration_sec=5.0)
-        self.step(self.held_tension)
+            self.set_holding(True, f'no valid tension command for {self.command_timeout} s')
+        self.step(self.held_tension, hold=self.holding)
 
     def on_idle_check(self):
         """Lockstep: publish the state again when its command is late (the first state once
@@ -261,8 +298,8 @@ class SimNode(Node):
     def loop_wired(self):
         return self.readers.count >= self.wait_for_subscribers
 
-    def step(self, tension):
-        self.plant.advance(tension)
+    def step(self, tension, hold=False):
+        self.plant.advance(tension, hold=hold and bool(self.plant.config.hold_gain))
         if self.plant.status is Status.HALTED_OUT_OF_DOMAIN:
             self.get_logger().error(self.plant.message)
             self.publish_status()
@@ -299,7 +336,7 @@ class SimNode(Node):
             return
         si = self.scale.state_to_si(self.plant.measure())
         self.last_state = state_to_msg(si, self.plant.step_index, self.sim_stamp(),
-                                       self.frame_id)
+                                       self.frame_id, self.plant.run)
         self.state_published_wall = time.monotonic()
         self.state_pub.publish(self.last_state)
 
@@ -309,7 +346,7 @@ class SimNode(Node):
     def publish_status(self):
         plant = self.plant
         msg = SimStatus(status=int(plant.status), message=plant.message, step=plant.step_index,
-                        commands_accepted=plant.accepted,
+                        run=plant.run, holding=self.holding, commands_accepted=plant.accepted,
                         command_timeouts=self.command_timeouts)
         msg.header.stamp = self.sim_stamp()
         for rejection, count in plant.counters.items():
@@ -317,14 +354,15 @@ class SimNode(Node):
         self.status_pub.publish(msg)
 
     def diagnose(self):
-        """Health (README, *Diagnostics*): ERROR when the run halted (the state left the
-        domain or tumbled); WARN when commands were rejected or timed out since the last
-        report, or lockstep waits for its readers or a command; OK otherwise."""
+        """Health (docs/nodes.md): ERROR when the run halted (the state left the domain or
+        tumbled); WARN when commands were rejected or timed out since the last report, while
+        the plant holds, or lockstep waits for its readers or a command; OK otherwise."""
         plant = self.plant
         rejected, timeouts = self.counters()
         last_rejected, last_timeouts = self.reported
         self.reported = (rejected, timeouts)
-        values = {'status': plant.status.name.lower(), 'mode': self.mode, 'step': plant.step_index,
+        values = {'status': plant.status.name.lower(), 'mode': self.mode, 'run': plant.run,
+                  'step': plant.step_index,
                   'tau': plant.tau, 'commands_accepted': plant.accepted,
                   'command_timeouts': timeouts, 'state_readers': self.readers.count}
         values.update({f'rejected_{r.value}': n for r, n in rejected.items()})
@@ -334,8 +372,11 @@ class SimNode(Node):
             return Health.ERROR, plant.message, values
         if new:
             return Health.WARN, f'commands rejected: {new}', values
+        values['holding'] = self.holding
         if timeouts > last_timeouts:
-            return Health.WARN, 'no valid command: safe tension applied', values
+            return Health.WARN, 'no valid command: the plant holds', values
+        if self.holding:
+            return Health.WARN, 'the controller stopped: the plant holds', values
         if plant.status is Status.RUNNING and self.mode == 'lockstep':
             if not self.loop_wired():
                 return Health.WARN, (f'waiting for {self.wait_for_subscribers} readers of '
@@ -358,6 +399,7 @@ class SimNode(Node):
             self.get_logger().warning(f'reset refused: {error}')
         self.last_command_wall = time.monotonic()
         self.held_tension = self.safe_tension
+        self.holding = False
         self.last_accepted = None   # step numbers start again
         self.accepted_at_start = self.plant.accepted
         self.publish_status()

@@ -75,13 +75,14 @@ def state_from_msg(msg, dim=None):
     return np.array(values, dtype=float)
 
 
-def state_to_msg(si_state, step, stamp, frame_id=STATE_FRAME):
-    """SI state array (4 or 6 components) -> TsrState."""
+def state_to_msg(si_state, step, stamp, frame_id=STATE_FRAME, run=0):
+    """SI state array (4 or 6 components) of step `step` of run `run` -> TsrState."""
     from tsr_msgs.msg import TsrState
     msg = TsrState()
     msg.header.stamp = stamp
     msg.header.frame_id = frame_id
     msg.step = int(step)
+    msg.run = int(run)
     msg.theta, msg.theta_rate, msg.length, msg.length_rate = (float(v) for v in si_state[:4])
     if si_state.shape[-1] == SPATIAL_DIM:
         msg.has_out_of_plane = True
@@ -89,13 +90,15 @@ def state_to_msg(si_state, step, stamp, frame_id=STATE_FRAME):
     return msg
 
 
-def tension_msg(tension, step, stamp):
-    """Tension [N] answering state `step` (NO_STEP: none) -> TensionCommand."""
+def tension_msg(tension, step, stamp, hold=False):
+    """Tension [N] answering state `step` (NO_STEP: none) -> TensionCommand; `hold`: the
+    controller stopped, the plant holds the tether (`tension` for a plant without a hold)."""
     from tsr_msgs.msg import TensionCommand
     msg = TensionCommand()
     msg.header.stamp = stamp
     msg.step = int(step)
     msg.tension = float(tension)
+    msg.hold = bool(hold)
     return msg
 
 

@@ -8,7 +8,9 @@ loop's one step (`control.step.ControlStep`) adds the excitation, clamps it with
 a new run). Settings come from the law's `Settings` class (`settings.py`); the sample period h
 and the tension limit u_max are the loop's, not the law's, so they are separate. A law may plan
 with a learned model (`model`), bound the tension it plans with (`bound_tension`), count the
-steps its optimiser failed (`fallbacks`) and report on itself (`diagnostics`).
+steps its optimiser failed (`fallbacks`), show the states its plan predicts (`prediction`) and
+how far its model's last one-step prediction missed (`residual`), which the runtime-assurance
+supervisor judges it by (`supervisor.py`), and report on itself (`diagnostics`).
 """
 
 import math
@@ -61,9 +63,27 @@ class Law:
         wrapper gives the felt range the actuator can reach). Laws without bounds of their own
         ignore it: the clamp after them holds the limit."""
 
+    def observe(self, x):
+        """The law is not asked for a tension this step but sees the state x (the supervisor's
+        untrusted learned law, resting): an observer keeps up with it, a plan is dropped (the
+        next `compute` starts afresh); the others ignore it."""
+
     def applied(self, command):
-        """The command actually sent after `compute` (an excitation added, a clamp): a law
-        with memory of its commands (an observer) takes it from here; the others ignore it."""
+        """The command actually sent after `compute` (an excitation added, a clamp, or another
+        law's: the supervisor's fallback flew, or the learned law in its shadow): a law with
+        memory of what was flown (an observer, a plan's rate term, an actuator model) takes
+        it from here; the others ignore it."""
+
+    def prediction(self):
+        """The states the law's plan predicts from the last state it computed for (N + 1, n),
+        or None for a law without a plan. The supervisor checks the plan's bounds on it."""
+        return None
+
+    def residual(self):
+        """How far the state of the last `compute` lies from the law's one-step prediction of
+        it (its model's, from the state before and the tension felt): (n,), or None for a law
+        without a model of the plant or before its second step."""
+        return None
 
     def diagnostics(self):
         """{name: value} a law reports about itself on /diagnostics (e.g. an estimate)."""

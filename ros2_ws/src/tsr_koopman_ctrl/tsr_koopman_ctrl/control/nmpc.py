@@ -176,8 +176,10 @@ class Nmpc(Law):
         self.flown = None
         #: The actuator's tension now by the lag model (None: none flown yet; the actuator
         #: starts on the first tension), and the felt tensions of the plan (N,).
-        self.actuator = None
+        self.actuator = self.actuator_before = None
         self.felt_plan = None
+        #: The state now less the map's one-step prediction of it (`residual`).
+        self.missed = None
         #: The tensions the plans may take: [0, u_max], or the felt range the offset-free
         #: wrapper sets ([phi(0), phi(u_max)]: what the actuator can make the plant feel).
         self.felt_range = (0.0, self.u_max)
@@ -197,6 +199,7 @@ class Nmpc(Law):
         shifted = np.clip(shift_plan(self.plan, self.starts, self.durations, self.h),
                           *self.felt_range)
         nodes = self.map.step(self.nodes, np.r_[self.felt_plan, self.felt_plan[-1]])
+        self.missed = x - nodes[0]       # nodes[0]: the last state advanced under what flew
         nodes[0] = x
         step = self.iterate(nodes, shifted) if np.all(np.isfinite(nodes)) else None
         if step is None:
@@ -212,10 +215,33 @@ class Nmpc(Law):
         """Record `tension` as flown (the rate term's u_{-1}) and advance the lag model's
         actuator one sample under it."""
         self.flown = tension
+        self.actuator_before = self.actuator
         if self.lag is not None:
             start = tension if self.actuator is None else self.actuator
             self.actuator = tension + (start - tension) * self.lag.decay
         return tension
+
+    def applied(self, tension):
+        """`tension` flew this step, not the law's own (a clamp, an excitation, another law):
+        it is the rate term's u_{-1} and the tension the lag model's actuator advanced under."""
+        if tension == self.flown:
+            return
+        self.actuator = self.actuator_before
+        self.fly(float(tension))
+        if self.plan is not None and self.lag is None:
+            # The plan's first interval is what flew: the next shift advances the state under it
+            self.plan[0] = self.felt_plan[0] = self.flown
+
+    def observe(self, x):
+        """Not flown this step: the plan is dropped (the next step is a cold start)."""
+        self.plan = self.nodes = self.felt_plan = self.missed = None
+        self.actuator_before = self.actuator
+
+    def prediction(self):
+        return self.nodes
+
+    def residual(self):
+        return self.missed
 
     def felt(self, plan):
         """The tensions the plant feels on average over each interval of `plan` (N,): the plan
@@ -268,29 +294,18 @@ class Nmpc(Law):
         return float(plan[0])
 
     def rollout(self, x, plan):
-        """The node states (N + 1, n) of `plan` flown on the map from x (one interval at a
-        time: sequential, for the cold start only)."""
-        nodes = [np.asarray(x, dtype=float)]
-        with np.errstate(all='ignore'):
-            for tension, count in zip(self.felt(plan), self.counts):
-                nodes.append(self.map.advance(nodes[-1][None], np.array([tension]),
-                                              [count])[0])
-        return np.array(nodes)
+        """The node states (N + 1, n) of `plan` flown on the map from x, interval after
+        interval (single shooting: for the cold start only)."""
+        return self.map.rollout(x, self.felt(plan), self.counts)
 
     def lqr_plan(self, x):
         """The linearised LQR law (Q = I, R = 1) flown on the map over the grid, its tension
         held over each interval: (plan (N,), node states (N + 1, n))."""
-        nodes, plan = [np.asarray(x, dtype=float)], []
-        with np.errstate(all='ignore'):
-            for count in self.counts:
-                state = nodes[-1]
-                plan.append(float(np.clip(dynamics.EQUILIBRIUM_TENSION
-                                          - self.lqr_gain @ state, *self.felt_range)))
-                nodes.append(self.map.advance(state[None], np.array([plan[-1]]), [count])[0])
-        plan = np.array(plan)
+        plan, nodes = self.map.feedback_rollout(x, dynamics.EQUILIBRIUM_TENSION, self.lqr_gain,
+                                                self.felt_range, self.counts)
         if self.lag is not None:   # (the LQR law's tensions, flown through the lag)
             nodes = self.rollout(x, plan)
-        return plan, self.floored(np.array(nodes))
+        return plan, self.floored(nodes)
 
     def floored(self, nodes):
         """Node states with l >= LENGTH_FLOOR and finite (a plan's linear prediction may reel

@@ -90,6 +90,8 @@ class DisturbanceObserver:
     def reset(self):
         self.estimate = None       # [x_hat (4), (a_hat), d_hat]
         self.covariance = None
+        #: y - the one-step prediction of the planar state (None until a prediction was made)
+        self.innovation = None
         self.actuator_pending = False   # a_hat is set from the first command it sees
 
     @property
@@ -117,11 +119,13 @@ class DisturbanceObserver:
         if self.estimate is not None and previous_command is not None:
             predicted, jacobian = self.linearised_step(self.estimate, float(previous_command))
             if np.all(np.isfinite(predicted)) and np.all(np.isfinite(jacobian)):
+                self.innovation = y - predicted[:PLANAR]
                 return self.correct(y, predicted, jacobian)
         # first sample, or the estimate left the model's domain (a noisy l near 0): restart
         # from the measurement, keeping the disturbance learnt so far; the actuator starts on
         # the first command, as the simulated plant's does
         self.actuator_pending = self.lag > 0.0
+        self.innovation = None
         start = np.r_[y, [np.nan] * (self.size - PLANAR - 1), self.disturbance]
         start[dynamics.LENGTH_OFFSET] = max(start[dynamics.LENGTH_OFFSET], MIN_LENGTH - 1.0)
         self.estimate, self.covariance = start, self.initial_covariance.copy()

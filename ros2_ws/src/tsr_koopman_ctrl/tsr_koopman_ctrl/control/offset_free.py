@@ -105,10 +105,26 @@ class OffsetFree(Law):
         self.last_command = command   # the observer must know the clamped command
         return command
 
+    def observe(self, x):
+        """The observer keeps up with the measurement; the law drops its plan."""
+        self.observer.update(planar_state(x), self.last_command)
+        self.law.observe(x)
+
     def applied(self, command):
-        """Tell the observer the command actually sent, when it is not the one `compute`
-        returned (an excitation was added, or a clamp changed it)."""
+        """Tell the observer the command actually sent, and the law the tension it makes the
+        plant feel, when it is not the one `compute` returned (an excitation was added, a
+        clamp changed it, or another law flew: the supervisor)."""
+        if command != self.last_command:
+            self.law.applied(self.observer.applied(command))
         self.last_command = float(command)
+
+    def prediction(self):
+        return self.law.prediction()
+
+    def residual(self):
+        """The observer's innovation: the measurement less its model's one-step prediction
+        (the disturbance estimate included)."""
+        return self.observer.innovation
 
     def diagnostics(self):
         return {**self.law.diagnostics(), 'disturbance_estimate': self.observer.disturbance,

@@ -48,6 +48,26 @@ class MapBase:
             end[active] = self.step(end[active], u[active])
         return end
 
+    def rollout(self, x, u, counts):
+        """One state x (n,) flown through the intervals in turn, u[j] held over counts[j]
+        samples: the node states (N + 1, n), sequential (a cold start's single shooting)."""
+        nodes = [np.asarray(x, dtype=float)]
+        with np.errstate(all='ignore'):
+            for tension, count in zip(u, counts):
+                nodes.append(self.advance(nodes[-1][None], np.array([tension]), [count])[0])
+        return np.array(nodes)
+
+    def feedback_rollout(self, x, tension, gain, bounds, counts):
+        """One state x (n,) flown through the intervals under the linear law
+        u = clip(tension - gain x, *bounds), evaluated at each interval's start and held over
+        it: (tensions (N,), node states (N + 1, n)), sequential."""
+        nodes, plan = [np.asarray(x, dtype=float)], []
+        with np.errstate(all='ignore'):
+            for count in counts:
+                plan.append(float(np.clip(tension - gain @ nodes[-1], *bounds)))
+                nodes.append(self.advance(nodes[-1][None], np.array([plan[-1]]), [count])[0])
+        return np.array(plan), np.array(nodes)
+
     def interval(self, x, u, counts, exact=True):
         """Rows of x (N, n) advanced counts[i] >= 1 samples under u[i]: (end (N, n),
         d end / d x (N, n, n), d end / d u (N, n)). `exact` False: the sensitivities from the
@@ -146,6 +166,45 @@ class PhysicsMap(MapBase):
 
     def advance(self, x, u, counts):
         return self.interval(x, u, counts)[0]
+
+    def rollout(self, x, u, counts):
+        """`MapBase.rollout` in one CasADi call (a function per grid, built once)."""
+        function = self.grid_function('rollout', counts, lambda start, node, j, inputs:
+                                      inputs[j], len(counts))
+        with np.errstate(all='ignore'):
+            return np.asarray(function(np.asarray(x, dtype=float),
+                                       np.asarray(u, dtype=float))[1]).T
+
+    def feedback_rollout(self, x, tension, gain, bounds, counts):
+        """`MapBase.feedback_rollout` in one CasADi call (a function per grid)."""
+        def law(start, node, j, inputs):
+            import casadi as ca
+            u = inputs[0] - ca.dot(inputs[1:5], node)
+            return ca.fmin(ca.fmax(u, inputs[5]), inputs[6])
+        function = self.grid_function('feedback', counts, law, 7)
+        inputs = np.r_[tension, np.asarray(gain, dtype=float).ravel(), bounds]
+        with np.errstate(all='ignore'):
+            plan, nodes = function(np.asarray(x, dtype=float), inputs)
+        return np.asarray(plan).ravel(), np.asarray(nodes).T
+
+    def grid_function(self, kind, counts, tension, inputs):
+        """A CasADi function (x (4), inputs) -> (tensions (N,), nodes (4, N + 1)) flying the
+        grid `counts` from x, interval j under tension(x, node_j, j, inputs), built once."""
+        key = (kind, tuple(int(c) for c in counts))
+        if key not in self._functions:
+            import casadi as ca
+
+            from tsr_sim.dynamics import symbolic_rk4
+            start, values = ca.SX.sym('x', 4), ca.SX.sym('inputs', inputs)
+            nodes, plan = [start], []
+            for j, samples in enumerate(key[1]):
+                plan.append(tension(start, nodes[-1], j, values))
+                end, _ = symbolic_rk4(nodes[-1], plan[-1], samples * self.h,
+                                      self.substeps(samples))
+                nodes.append(end)
+            self._functions[key] = ca.Function(kind, [start, values],
+                                               [ca.vertcat(*plan), ca.horzcat(*nodes)])
+        return self._functions[key]
 
     def interval(self, x, u, counts, exact=True):
         """The rows of each length in one mapped call; exact whatever `exact` says."""

@@ -1,5 +1,7 @@
 """The laws by name: what the node, the tools and users build a controller from."""
 
+import dataclasses
+
 from tsr_koopman_ctrl.control.excitation import ExcitationSettings
 from tsr_koopman_ctrl.control.fractional_pd import FractionalOrderPd
 from tsr_koopman_ctrl.control.koopman_lqr import KoopmanLqr
@@ -7,7 +9,8 @@ from tsr_koopman_ctrl.control.koopman_mpc import KoopmanMpc
 from tsr_koopman_ctrl.control.nmpc import KoopmanNmpc, PhysicsNmpc
 from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
-from tsr_koopman_ctrl.control.settings import build
+from tsr_koopman_ctrl.control.settings import build, LawSettings
+from tsr_koopman_ctrl.control.supervisor import Supervisor, SupervisorSettings
 
 #: The law the controller node, deploy and the main job run unless told otherwise.
 DEFAULT_LAW = 'koopman_nmpc'
@@ -15,7 +18,8 @@ CONTROLLERS = {law.name: law for law in (LinearisedLqr, FractionalOrderPd, Koopm
                                          KoopmanMpc, KoopmanNmpc, PhysicsNmpc)}
 #: The controller's settings sections that are not laws: the observer (offset-free control)
 #: and the excitation. The node declares them, deploy and its presets take them.
-NODE_SECTIONS = {'observer': ObserverSettings, 'excitation': ExcitationSettings}
+NODE_SECTIONS = {'observer': ObserverSettings, 'excitation': ExcitationSettings,
+                 'supervisor': SupervisorSettings}
 
 
 def settings_sections():
@@ -31,16 +35,50 @@ def law_class(name):
         raise ValueError(f'unknown law {name!r}; choose from {sorted(CONTROLLERS)}')
 
 
-def make_controller(name, settings=None, observer=None, **overrides):
+def make_controller(name, settings=None, observer=None, supervisor=None, **overrides):
     """Build the law `name`: its settings (an instance of its Settings class, or the defaults)
     with `overrides` (settings fields, or the loop's h and u_max) applied, wrapped for
-    offset-free control unless `observer` (ObserverSettings, a dict of them, or the defaults)
-    says disturbance 'none'."""
+    offset-free control unless `observer` (ObserverSettings, a dict of them, or the defaults;
+    'none' for the bare law) says disturbance 'none'. A learned law (one with a model) flies
+    under the runtime-assurance supervisor, its verified fallback wrapped the same way,
+    unless `supervisor` (SupervisorSettings, a dict of them, or the defaults) says fallback
+    'none' (or is 'none')."""
     law = law_class(name)(settings, **overrides)
-    if isinstance(observer, dict):      # checked as a law's settings: one line naming the key
-        observer = build(ObserverSettings, None, observer)
-    observer = observer or ObserverSettings()
-    return law if observer.disturbance == 'none' else OffsetFree(law, observer)
+    observer = section_settings(ObserverSettings, observer, 'disturbance')
+    supervisor = section_settings(SupervisorSettings, supervisor, 'fallback')
+
+    def offset_free(law):
+        return law if observer.disturbance == 'none' else OffsetFree(law, observer)
+    if law.model is None or supervisor.fallback == 'none':
+        return offset_free(law)
+    return Supervisor(offset_free(law), offset_free(fallback_law(law, supervisor.fallback)),
+                      supervisor)
+
+
+def section_settings(settings_class, value, off_field):
+    """A wrapper's settings from an instance, a dict (checked as a law's settings: one line
+    naming the key), None (the defaults) or 'none' (`off_field` set to 'none')."""
+    if isinstance(value, str):
+        value = {off_field: value}
+    if isinstance(value, dict):
+        return build(settings_class, None, value)
+    return value or settings_class()
+
+
+def fallback_law(learned, name):
+    """The supervisor's fallback for `learned`: `name` built with the settings both laws'
+    classes inherit from one declaration (the NMPCs: cost, horizon, bounds; none for laws of
+    other families, which give it only their swing bound), the loop's h and u_max."""
+    cls = law_class(name)
+    common = next((base for base in type(learned.settings).__mro__
+                   if issubclass(cls.Settings, base) and issubclass(base, LawSettings)
+                   and base is not LawSettings), None)
+    shared = {} if common is None else {
+        field.name: getattr(learned.settings, field.name)
+        for field in dataclasses.fields(common)}
+    if 'theta_max' in type(learned.settings).__dataclass_fields__:
+        shared['theta_max'] = learned.settings.theta_max
+    return cls(None, h=learned.h, u_max=learned.u_max, **shared)
 
 
 def preset(name, sections=None):

@@ -153,6 +153,15 @@ class LiftedModel:
         self.A, self.B = tensors['A'], tensors['B']
         self.C = np.eye(self.n, config.lifted_dim)
 
+    @property
+    def envelope(self):
+        """(low (n,), high (n,)): the box of the states the model was trained on (the model
+        file's `envelope`), or None for a file without one."""
+        box = self.metadata.get('envelope')
+        if not box:
+            return None
+        return np.asarray(box['low'], dtype=float), np.asarray(box['high'], dtype=float)
+
     def anchor_at(self, x, u):
         """Shift the last biases so Phi(x) = 0 and psi_uu(u) = 0: the torch model's
         `anchor_equilibrium`, folded into the constants once instead of subtracted per call."""

@@ -1,0 +1,193 @@
+"""Runtime assurance: a learned law flown under a monitor, with a verified law to take over.
+
+Simplex architecture (Sha 2001; the pattern of ros2_control's `fallback_controllers`): every
+step the monitor judges the learned law from what it already knows, and the step is flown by
+the learned law while it is trusted, else by the fallback, a law shown to hold the plant from
+the states where it takes over (docs/supervisor.md has the region, lab/fallback_region.py
+measures it). The learned law keeps computing while the fallback flies (told the tension
+flown) and takes back, with hysteresis, once it has been trusted for `takeback_steps` steps
+in a row; when it faults while the fallback flies, it rests for `takeback_steps` steps (it sees
+the states, its observer keeps up, it plans nothing: a lost learned law would cold-start every
+step) and then starts afresh on probation. The fallback computes every step too (`shadow`), so it
+takes over warm: its plan is the one it would be flying.
+
+What the monitor watches (each a reason on /diagnostics and in the bag):
+
+- `fallback`, `bound`: the learned law faulted on `fault_count` of the last `fault_window`
+  steps, a fault being a step where its optimiser fell back or its plan (a law that has one:
+  `Law.prediction`) breaks its swing bound by more than `bound_tolerance`. One fault is no
+  reason: a single failed QP at a bang-bang switch is part of a nominal deployment; a learned
+  model that cannot keep its own plan within the bound faults step after step;
+- `envelope`: the state lies outside the envelope the model was trained on (the model file's
+  `envelope`, widened by `envelope_margin` of its width);
+- `prediction`: the model's one-step prediction from the last state and the tension felt
+  missed the state now by more than `prediction_threshold` (any component, dimensionless).
+
+The supervisor is a law itself (its name, settings and model are the learned law's), so the
+offset-free wrapper, the control step, the node and `closed_loop` take it as they take a law.
+"""
+
+import dataclasses
+from typing import ClassVar
+
+import numpy as np
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control.law import Law, planar_state
+from tsr_koopman_ctrl.control.settings import build, LawSettings, setting
+
+#: Which law flew a step (ControllerStatus.flying, /diagnostics).
+LEARNED, FALLBACK = 'learned', 'fallback'
+#: Why the monitor distrusts the learned law (ControllerStatus.monitor; '' when it trusts it).
+REASONS = ('fallback', 'bound', 'envelope', 'prediction')
+
+
+@dataclasses.dataclass(frozen=True)
+class SupervisorSettings(LawSettings):
+    law: ClassVar[str] = 'supervisor'
+    fallback: str = setting('physics_nmpc', "the verified law that takes over: "
+                            "'physics_nmpc' (the NMPC on the exact equations, the learned "
+                            "law's cost and bounds); 'none': the learned law unsupervised",
+                            choices=('none', 'physics_nmpc'))
+    fault_count: int = setting(2, 'faults of the learned law (its optimiser fell back, or its '
+                               'plan breaks the swing bound) within fault_window steps that '
+                               'make it untrusted', low=1, high=1000)
+    fault_window: int = setting(2, 'steps over which faults are counted', low=1, high=100000)
+    bound_tolerance: float = setting(0.005, "how far the learned plan's swing may pass the "
+                                     'swing bound before the step is a fault [rad]', low=0.0,
+                                     high=10.0)
+    envelope_margin: float = setting(0.1, "the model's training envelope widened by this "
+                                     'fraction of its width on each side', low=0.0, high=10.0)
+    prediction_threshold: float = setting(0.2, "largest miss of the model's one-step "
+                                          'prediction, any component (dimensionless)',
+                                          low=0.0, high=1e6)
+    takeback_steps: int = setting(100, 'steps in a row the learned law must be trusted before '
+                                  'it takes back from the fallback', low=1, high=10 ** 7)
+    shadow: str = setting('armed', "when the fallback plans beside the learned law, so that it "
+                          "takes over warm: 'armed' (for arm_steps steps after each fault of "
+                          "the learned law), 'always', or 'never' (it starts cold when it "
+                          'takes over); its observer keeps up every step',
+                          choices=('armed', 'always', 'never'))
+    arm_steps: int = setting(100, 'steps the fallback stays armed after a fault of the learned '
+                             'law', low=1, high=10 ** 7)
+
+
+class Supervisor(Law):
+    """`learned` flown under the monitor, `fallback` taking over (module docstring). Each is a
+    law as it would be deployed alone (offset-free, with its own observer), so the fallback
+    flies exactly as it was verified."""
+
+    def __init__(self, learned, fallback, settings=None, **overrides):
+        self.learned, self.fallback = learned, fallback
+        self.name, self.Settings, self.settings = learned.name, learned.Settings, learned.settings
+        self.h, self.u_max, self.model = learned.h, learned.u_max, learned.model
+        self.supervisor_settings = build(SupervisorSettings, settings, overrides)
+        self.envelope = None
+        if self.model is not None and self.model.envelope is not None:
+            low, high = (np.asarray(v, dtype=float) for v in self.model.envelope)
+            widen = self.supervisor_settings.envelope_margin * (high - low)
+            self.envelope = (low - widen, high + widen)
+        self.theta_bound = getattr(learned.settings, 'theta_max', np.inf)
+        self.reset()
+
+    def reset(self):
+        self.learned.reset()
+        self.fallback.reset()
+        self.flying = LEARNED
+        self.reason = ''             # why the monitor distrusts the learned law now ('': not)
+        self.switches = 0
+        self.trusted_steps = 0
+        self.faults = []             # (step, reason) of the learned law's recent faults
+        self.resting = 0             # steps the untrusted learned law still rests
+        self.armed = 0               # steps the fallback still plans in the shadow
+        self.steps = 0
+        self.fallbacks = 0           # steps where the law that flew fell back
+        self.reasons = {reason: 0 for reason in REASONS}
+
+    def bound_tension(self, low, high):
+        self.learned.bound_tension(low, high)
+        self.fallback.bound_tension(low, high)
+
+    def compute(self, x):
+        x = planar_state(x)
+        s = self.supervisor_settings
+        learned = None
+        if self.resting:
+            self.resting -= 1
+            self.learned.observe(x)
+        else:
+            learned = self.run(self.learned, x)
+            self.reason = self.judge(x, learned[1])
+            if self.reason:
+                self.reasons[self.reason] += 1
+                self.trusted_steps = 0
+                if self.flying == LEARNED:
+                    self.switch(FALLBACK)
+                else:
+                    self.resting = s.takeback_steps
+            else:
+                self.trusted_steps += 1
+                if self.flying == FALLBACK and self.trusted_steps >= s.takeback_steps:
+                    self.switch(LEARNED)
+        # The fallback plans whenever it flies or may soon (armed); otherwise it only sees the
+        # state, so that its observer keeps up.
+        if self.flying == FALLBACK or s.shadow == 'always' or (
+                s.shadow == 'armed' and self.armed):
+            fallback = self.run(self.fallback, x)
+        else:
+            self.fallback.observe(x)
+        self.armed = max(self.armed - 1, 0)
+        tension, fell_back = learned if self.flying == LEARNED else fallback
+        self.fallbacks += fell_back
+        self.steps += 1
+        return tension
+
+    @staticmethod
+    def run(law, x):
+        """(law's tension for x, whether its optimiser fell back)."""
+        before = law.fallbacks
+        tension = law.compute(x)
+        return tension, law.fallbacks > before
+
+    def applied(self, command):
+        """Both laws are told what was sent: the one that did not fly keeps up with it."""
+        self.learned.applied(command)
+        self.fallback.applied(command)
+
+    def switch(self, flying):
+        self.flying = flying
+        self.switches += 1
+        self.trusted_steps = 0
+
+    def judge(self, x, fell_back):
+        """'' if the learned law is trusted this step, else the reason it is not."""
+        s = self.supervisor_settings
+        plan = self.learned.prediction()
+        if fell_back:
+            self.faults.append((self.steps, 'fallback'))
+        elif plan is not None and (np.abs(plan[:, dynamics.THETA]).max()
+                                   > self.theta_bound + s.bound_tolerance):
+            self.faults.append((self.steps, 'bound'))
+        if self.faults and self.faults[-1][0] == self.steps:
+            self.armed = s.arm_steps + 1      # (this step's included)
+        self.faults = [(k, why) for k, why in self.faults if k > self.steps - s.fault_window]
+        if len(self.faults) >= s.fault_count:
+            return self.faults[-1][1]
+        if self.envelope is not None and not (np.all(x >= self.envelope[0])
+                                              and np.all(x <= self.envelope[1])):
+            return 'envelope'
+        missed = self.learned.residual()
+        if missed is not None and np.max(np.abs(missed)) > s.prediction_threshold:
+            return 'prediction'
+        return ''
+
+    def prediction(self):
+        return (self.learned if self.flying == LEARNED else self.fallback).prediction()
+
+    def residual(self):
+        return self.learned.residual()
+
+    def diagnostics(self):
+        return {**self.learned.diagnostics(), 'flying': self.flying,
+                'monitor': self.reason or 'trusted', 'supervisor_switches': self.switches,
+                **{f'untrusted_{reason}': n for reason, n in self.reasons.items()}}
