@@ -121,7 +121,7 @@ def test_the_condensed_nodes_predict_the_rollout_to_first_order(law):
     change du moves it by the gains to second order (halving du quarters the remainder)."""
     nmpc_law = (PhysicsNmpc(horizon=1.0) if law == 'physics'
                 else KoopmanNmpc(horizon=1.0, model=RETRIEVAL, sensitivities='exact',
-                                 precision='float64'))
+                                 precision='float64', cold_guide='model'))
     x = np.array(PAPER_START)
     plan, nodes = nmpc_law.lqr_plan(x)
     end, a, b = nmpc_law.map.interval(nodes[:-1], plan, nmpc_law.counts)

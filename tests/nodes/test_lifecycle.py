@@ -22,22 +22,23 @@ class Watch:
         from tsr_msgs.msg import SimStatus, TensionCommand, TsrState
         from tsr_sim import ros_io
         self.commands, self.states, self.status, self.health = [], {}, None, {}
+        self.holds = []                      # the commands' hold flags
         self.runs = [self.states]
+        self.run = 0
         node = ros.node
 
         def on_state(msg):
-            x = SCALE.state_from_si(wire.state_from_msg(msg))
-            last = max(self.states) if self.states else None
-            if last == msg.step and np.array_equal(self.states[last], x):
-                return                       # a republished state
-            if last is not None and msg.step <= last:
-                self.states = {}             # a new run
+            if msg.run != self.run:          # a new run, as the simulator numbers them
+                self.run, self.states = msg.run, {}
                 self.runs.append(self.states)
-            self.states[msg.step] = x
+            self.states[msg.step] = SCALE.state_from_si(wire.state_from_msg(msg))
+
+        def on_command(msg):
+            self.commands.append((msg.step, msg.tension))
+            self.holds.append(msg.hold)
 
         node.create_subscription(TensionCommand, wire.resolve(wire.TENSION_TOPIC, namespace),
-                                 lambda m: self.commands.append((m.step, m.tension)),
-                                 ros_io.LOOP_QOS)
+                                 on_command, ros_io.LOOP_QOS)
         node.create_subscription(TsrState, wire.resolve(wire.STATE_TOPIC, namespace), on_state,
                                  ros_io.LOOP_QOS)
         node.create_subscription(SimStatus, wire.resolve(wire.SIM_STATUS_TOPIC, namespace),
@@ -71,12 +72,13 @@ def health_of(watch, node):
 
 
 def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, start_node):
-    """Unconfigured and inactive: no command. Active: commands. Deactivate: the safe tension
-    once (step NO_STEP), then nothing, which a timed simulator holds. Cleanup, then a bad law
-    set while unconfigured fails configure with one line, on /diagnostics as an ERROR."""
+    """Unconfigured and inactive: no command. Active: commands. Deactivate: the stop once (step
+    NO_STEP, hold set), then nothing: the timed simulator engages its reel hold. Cleanup, then a
+    bad law set while unconfigured fails configure with one line, on /diagnostics as an
+    ERROR."""
     start_node('tsr_sim', 'sim_node', 'tsr_sim',
                {'mode': 'timed', 'rate_hz': 50.0, 'command_timeout': 60.0, 'progress_every': 0,
-                'initial_state': [0.0, 0.0, -0.05, 0.0]})   # the safe tension holds it
+                'clock_start': 'now', 'initial_state': [0.0, 0.0, -0.05, 0.0]})
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
                {'law': 'linear_lqr', 'autostart': False})
     watch = Watch(ros)
@@ -106,8 +108,10 @@ def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, sta
     assert len(watch.commands) == count      # then nothing
     assert watch.commands[-1] == (wire.NO_STEP,
                                   pytest.approx(SCALE.u_to_tension(dynamics.EQUILIBRIUM_TENSION)))
+    assert watch.holds[-1] and not any(watch.holds[:-1])
     accepted = watch.status.commands_accepted
-    ros.spin_until(lambda: watch.status.step > 100, what='the simulator holding it')
+    ros.spin_until(lambda: watch.status.step > 100 and watch.status.holding,
+                   what='the simulator holding it')
     assert watch.status.commands_accepted == accepted and watch.status.command_timeouts == 0
 
     # Read at configure: refused while configured, accepted unconfigured, applied there.

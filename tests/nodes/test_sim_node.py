@@ -24,17 +24,18 @@ def tension_law(x):
 class SimDriver:
     """Test-side controller: answers every state with tension_law, records what it sees."""
 
-    def __init__(self, ros, answer=True):
+    def __init__(self, ros, answer=True, namespace='/'):
         from tsr_msgs.msg import SimStatus, TensionCommand, TsrState
         from tsr_sim import ros_io
         self.ros, self.answer = ros, answer
         self.states = {}
         self.status = None
         node = ros.node
-        self.cmd_pub = node.create_publisher(TensionCommand, wire.TENSION_TOPIC,
-                                             ros_io.LOOP_QOS)
-        node.create_subscription(TsrState, wire.STATE_TOPIC, self.on_state, ros_io.LOOP_QOS)
-        node.create_subscription(SimStatus, wire.SIM_STATUS_TOPIC,
+        self.cmd_pub = node.create_publisher(
+            TensionCommand, wire.resolve(wire.TENSION_TOPIC, namespace), ros_io.LOOP_QOS)
+        node.create_subscription(TsrState, wire.resolve(wire.STATE_TOPIC, namespace),
+                                 self.on_state, ros_io.LOOP_QOS)
+        node.create_subscription(SimStatus, wire.resolve(wire.SIM_STATUS_TOPIC, namespace),
                                  lambda m: setattr(self, 'status', m), ros_io.LATCHED_QOS)
 
     def on_state(self, msg):
@@ -128,16 +129,27 @@ def test_reset_service_restarts_from_the_requested_state(ros, start_node):
     assert 'outside the model domain' in bad.result().message
 
 
-@pytest.mark.parametrize('rate_hz', [200.0])
-def test_timed_mode_applies_safe_tension_without_commands(ros, start_node, rate_hz):
+def test_a_timed_run_waits_for_its_first_command_and_holds_without_commands(ros, start_node):
+    """By default (`clock_start: command`) a timed run does not move before its controller
+    answers its first state; started at once, a plant that gets no command engages its reel
+    hold after command_timeout (counted): the tether stops paying out."""
     start_node('tsr_sim', 'sim_node', 'tsr_sim',
-               dict(SIM_PARAMS, mode='timed', rate_hz=rate_hz, command_timeout=0.2,
-                    initial_state=[0.0, 0.0, -0.05, 0.0]))   # the safe tension holds it
+               dict(SIM_PARAMS, mode='timed', rate_hz=200.0, command_timeout=0.2,
+                    initial_state=[0.0, 0.0, -0.5, 0.3]))
     driver = SimDriver(ros, answer=False)
     driver.wait_for_sim()
-    ros.spin_until(lambda: driver.status is not None and driver.status.command_timeouts > 0,
-                   what='a command timeout')
-    ros.spin_until(lambda: max(driver.states) > 50, what='time to advance without commands')
+    ros.spin_for(1.0)
+    assert max(driver.states) == 0 and driver.status.step == 0
+    start_node('tsr_sim', 'sim_node', 'tsr_sim_now',
+               dict(SIM_PARAMS, mode='timed', rate_hz=200.0, command_timeout=0.2,
+                    clock_start='now', initial_state=[0.0, 0.0, -0.5, 0.3]),
+               namespace='/now')
+    now = SimDriver(ros, answer=False, namespace='/now')
+    ros.spin_until(lambda: now.status is not None and now.status.holding
+                   and now.status.command_timeouts == 1, what='the hold on a command timeout')
+    ros.spin_until(lambda: now.states and max(now.states) > 200, what='time to advance held')
+    x = now.states[max(now.states)]
+    assert abs(x[dynamics.LENGTH_RATE]) < 1e-3 and now.status.command_timeouts == 1
 
 
 def test_the_node_declares_the_parameters_of_the_tables_and_nothing_else(ros, start_node):
@@ -153,7 +165,7 @@ def test_the_node_declares_the_parameters_of_the_tables_and_nothing_else(ros, st
     ros.spin_until(future.done, what='the parameter list')
     declared = set(future.result().result.names)
     assert declared == {*PLANT_PARAMETERS, *SCALE_PARAMETERS, *SIMULATOR_PARAMETERS,
-                        'use_sim_time', 'start_type_description_service'}
+                        'threads', 'use_sim_time', 'start_type_description_service'}
 
 
 def test_a_given_name_close_to_a_declared_one_is_warned_of(start_node, tmp_path):

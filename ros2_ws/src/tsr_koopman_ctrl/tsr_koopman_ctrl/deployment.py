@@ -95,7 +95,10 @@ class Deployment:
     law, 'observer' or 'excitation'; model: a model directory or shipped name for the laws that
     have one; preset: a settings preset ('tuned_settle', or a parameter file); plant: a plant
     variant's name, a plant file, or a mapping of plant parameters; x0: the dimensionless start;
-    steps: lockstep steps of h = 0.01 tau; namespace: the nodes' ROS namespace; domain: the
+    steps: simulator steps of h = 0.01 tau; mode: 'lockstep' (one step per command: the
+    deployment as fast as the law computes, deterministic) or 'timed' (the hardware rehearsal:
+    `rate_hz` steps per wall second whatever the controller does, the newest state answered);
+    namespace: the nodes' ROS namespace; domain: the
     ROS_DOMAIN_ID (default: a random free one); bags: where the bag goes; logs: where the node
     logs go (default: a new temporary directory); name: the bag's name; timeout: wall seconds
     before the run is abandoned; progress: the simulator's progress lines on this console.
@@ -103,8 +106,9 @@ class Deployment:
     """
 
     def __init__(self, law=DEFAULT_LAW, settings=None, *, model=None, preset=None,
-                 plant='nominal', x0=PAPER_START, steps=2000, namespace=None, domain=None,
-                 bags='bags', logs=None, name=None, timeout=900.0, progress=True):
+                 plant='nominal', x0=PAPER_START, steps=2000, mode='lockstep',
+                 rate_hz=100.0, namespace=None, domain=None, bags='bags', logs=None, name=None,
+                 timeout=900.0, progress=True):
         law_class(law)
         self.law = law
         self.settings = merged_settings(law, settings, model, preset)
@@ -124,6 +128,11 @@ class Deployment:
         if int(steps) < 1:
             raise ValueError(f'steps must be >= 1, got {steps}')
         self.steps = int(steps)
+        if mode not in ('lockstep', 'timed'):
+            raise ValueError(f"mode must be 'lockstep' or 'timed', got {mode!r}")
+        if not float(rate_hz) > 0.0:
+            raise ValueError(f'rate_hz must be > 0, got {rate_hz}')
+        self.mode, self.rate_hz = mode, float(rate_hz)
         self.namespace = checked_namespace(namespace)
         self.domain = domain if domain is not None else random_domain_id()
         self.name = name or (f'deploy_{law}_'
@@ -145,16 +154,21 @@ class Deployment:
         # statuses, and the recorder subscribes at the first /clock, before any state.
         law_settings = {section: values for section, values in self.settings.items()
                         if section in (self.law, *NODE_SECTIONS)}
+        lockstep = self.mode == 'lockstep'
         return {
             'tsr_recorder': {'output_dir': self.bags, 'bag_name': self.name,
                              'use_sim_time': True},
-            'tsr_controller': {'law': self.law, 'wait_for_subscribers': 2,
-                               'wait_for_status_subscribers': 1, 'use_sim_time': True,
+            # Lockstep: the controller answers once the simulator and the recorder read its
+            # commands and statuses. Timed: at once (the plant does not wait; its writers keep
+            # their history for a recorder that matches late).
+            'tsr_controller': {'law': self.law, 'use_sim_time': True,
+                               'wait_for_subscribers': 2 if lockstep else 0,
+                               'wait_for_status_subscribers': 1 if lockstep else 0,
                                **law_settings},
-            'tsr_sim': {**self.plant, 'mode': 'lockstep', 'initial_state': self.x0,
-                        'max_steps': self.steps, 'exit_on_finish': True,
-                        'wait_for_subscribers': 2, 'progress_every': 100,
-                        'use_sim_time': True}}
+            'tsr_sim': {**self.plant, 'mode': self.mode, 'rate_hz': self.rate_hz,
+                        'initial_state': self.x0, 'max_steps': self.steps,
+                        'exit_on_finish': True, 'wait_for_subscribers': 2,
+                        'progress_every': 100, 'use_sim_time': True}}
 
     def start(self):
         """Start the recorder, the controller and the simulator (in that order)."""

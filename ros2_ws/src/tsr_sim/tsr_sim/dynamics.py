@@ -193,6 +193,21 @@ def hold_tension(x, gain=HOLD_GAIN, u_max=TENSION_LIMIT):
     return np.clip(free + gain * x[..., LENGTH_RATE], 0.0, u_max)
 
 
+#: The longest tether a measured state may have (twice the full length) and its largest swing:
+#: past these a message is no TSR state but a wrong one (units, a wrapped angle, a stray test).
+PLAUSIBLE_LENGTH = 2.0
+PLAUSIBLE_SWING = math.pi
+
+
+def plausible(x):
+    """True where a measured state (..., n) is one a TSR can be in: finite, 0 < l <=
+    PLAUSIBLE_LENGTH and |theta| <= PLAUSIBLE_SWING. A controller refuses any other."""
+    x = np.asarray(x, dtype=float)
+    with np.errstate(invalid='ignore'):
+        return (in_domain(x) & (x[..., LENGTH_OFFSET] + 1.0 <= PLAUSIBLE_LENGTH)
+                & (np.abs(x[..., THETA]) <= PLAUSIBLE_SWING))
+
+
 def linearise(x=None, u=EQUILIBRIUM_TENSION):
     """Return the Jacobians (A, B) of the planar model at (x, u): dx' = A dx + B du.
 

@@ -142,9 +142,11 @@ SIMULATOR_PARAMETERS = {
     'exit_on_finish': (False, 'shut the node down when max_steps is reached or the state '
                        'leaves the domain', None, None),
     'rate_hz': (100.0, 'timed: simulation steps per wall second', 0.01, 1e5),
-    'wait_for_publishers': (1, 'timed: the clock starts once this many writers of tension '
-                            'commands (a controller) have matched, at the DDS level (0: at '
-                            'once)', 0, 1000),
+    'clock_start': ('command', "timed: when each run's clock starts (the first and after "
+                    "each reset): 'command', at the first command answering the run's first "
+                    "state (the plant waits for its controller's go, as hardware does); "
+                    "'matched', once a writer of tension commands (a controller) has matched, "
+                    "at the DDS level; 'now', at once", None, None),
     'frame_id': (STATE_FRAME, 'frame of the published state (header.frame_id): the orbital '
                  'frame', None, None),
 }
@@ -285,6 +287,10 @@ class Plant:
         where = f'at step {self.step_index + 1} (tau {self.tau + self.config.step:.3f})'
         if not dynamics.in_domain(nxt):
             self.halt(f'state left the model domain {where}: {nxt.tolist()}')
+            return
+        if nxt[dynamics.LENGTH_OFFSET] + 1.0 > dynamics.PLAUSIBLE_LENGTH:
+            self.halt(f'the tether paid out past {dynamics.PLAUSIBLE_LENGTH:g} times its length '
+                      f'{where}: {nxt.tolist()}')
             return
         if abs(nxt[dynamics.THETA]) > self.config.max_swing:
             self.halt(f'tumbling {where}: |theta| = {abs(nxt[dynamics.THETA]):.3f} rad past '

@@ -33,6 +33,11 @@ from tsr_sim.units import DEFAULT_MASS, PAPER_ORBIT_RATE, PAPER_TETHER_LENGTH, S
 #: State and command: reliable, so lockstep never loses a step; shallow, so no backlog builds.
 LOOP_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                       history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+#: A controller's state subscription: the newest state only. A state that arrives while the
+#: law computes replaces the one waiting, so the law always acts on the plant as it is now (a
+#: real-time loop drops what it could not answer in time; the controller counts the gaps).
+NEWEST_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                        history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
 #: Publishers of the loop keep their last messages for late joiners, and enough of them that a
 #: recorder falling behind under load (a reliable writer drops what is past its depth, acked or
 #: not) loses nothing: at ~1 000 lockstep steps/s, 1 000 messages are a second of slack.
@@ -223,6 +228,23 @@ def print_usage(node_class, doc):
           'description, range and whether it is read-only; the README has the tables.')
 
 
+#: Math threads a node uses unless its `threads` parameter says otherwise: one, so that a node
+#: started by hand on a small machine runs as fast as under a launcher that sets
+#: OMP_NUM_THREADS=1 (several BLAS threads per process stall one another on two cores).
+DEFAULT_THREADS = 1
+
+
+def pin_threads(node):
+    """Declare `threads` and limit the process's BLAS / OpenMP thread pools to it (0: leave
+    them as the environment sets them)."""
+    threads = declare(node, 'threads', DEFAULT_THREADS, 'math (BLAS / OpenMP) threads of this '
+                      'process (0: as the environment sets them)', 0, 1024)
+    if threads:
+        from threadpoolctl import threadpool_limits
+        node.thread_limits = threadpool_limits(limits=threads)
+    return threads
+
+
 def run_node(make_node, on_exit=None, args=None, drain=None, start=None):
     """The node life cycle every node of the project shares (Jazzy).
 
@@ -234,8 +256,9 @@ def run_node(make_node, on_exit=None, args=None, drain=None, start=None):
     Then `on_exit(node)` and clean-up; exit code 0. A node whose `done` attribute a callback
     sets ends the run the same way (an exception out of a callback would be logged as fatal).
     A parameter given but not declared that is close to a declared one is a warning
-    (`warn_near_misses`). A bad parameter (out of range, wrong type, invalid value) or model
-    while constructing, or a --params-file that cannot be read
+    (`warn_near_misses`). Every node gets a `threads` parameter (`pin_threads`). A bad
+    parameter (out of range, wrong type, invalid value) or model while constructing, or a
+    --params-file that cannot be read
     (`parameter_file.params_file_problem`, checked before rcl would log its own [ERROR] line),
     is one clear line on stderr and exit code 2; so is an error `start(node)` returns (a
     managed node brought up at start: its failed transition). `-h`/`--help` prints the usage
@@ -268,6 +291,7 @@ def run_node(make_node, on_exit=None, args=None, drain=None, start=None):
         rclpy.try_shutdown()
         return 2
     warn_near_misses(node)
+    pin_threads(node)
     executor = EventsExecutor()
     executor.add_node(node)
     error = start(node) if start is not None else None

@@ -11,9 +11,11 @@ Modes:
             the controller's safe tension).
   timed     the rehearsal for hardware: advance at `rate_hz` wall-clock steps per second (time
             scale = rate_hz * step / Omega sim seconds per wall second) holding the latest
-            command, whenever it comes. The clock starts once `wait_for_publishers` writers of
-            tension commands (a controller) have matched, at the DDS level; until then the
-            first state is published and nothing moves. A stop engages the plant's reel hold
+            command, whenever it comes. Each run's clock starts as `clock_start` says: by
+            default at the first command answering the run's first state (the initial one,
+            and after each reset), so the controller's first solve never finds a plant that
+            has run on without it; until then that state is published every tick and
+            nothing moves. A stop engages the plant's reel hold
             (`Plant.hold_tension`: the reel stopped by its own speed loop, the length then held,
             as a brake would; `hold_gain` 0: `safe_tension` instead): a command with `hold`
             set (the controller was deactivated or shut down, or sees no state), and no valid
@@ -24,7 +26,8 @@ The simulator is the clock: /clock carries the plant's time (t = tau / Omega), f
 and while it waits, so nodes on sim time start too. Its own timers run on the steady clock, so
 it runs with `use_sim_time` true or false. A state that leaves the model's domain or tumbles
 (|theta| > `max_swing`) halts the run (status HALTED_OUT_OF_DOMAIN, an ERROR on /diagnostics);
-`tsr/reset` starts a new run from step 0, with the next run number (TsrState.run, SimStatus.run). Parameters that shape the plant or the run are
+`tsr/reset` starts a new run from step 0, with the next run number (TsrState.run,
+SimStatus.run). Parameters that shape the plant or the run are
 read-only on a running node; the scheduling ones are applied when set (`LIVE`).
 
 All maths and command checks are in tsr_sim.plant (ROS-free); this file converts and schedules.
@@ -53,7 +56,7 @@ from tsr_sim.wire import (CLOCK_TOPIC, NO_STEP, RESET_SERVICE, RUN_INFO_TOPIC, r
 
 #: Parameters applied when set on a running simulator; the others are read-only there.
 LIVE = ('rate_hz', 'command_timeout', 'safe_tension', 'republish_period', 'progress_every',
-        'wait_for_subscribers', 'wait_for_publishers', 'exit_on_finish', 'max_steps')
+        'wait_for_subscribers', 'exit_on_finish', 'max_steps')
 #: Republish periods without the first command of a run before the lockstep simulator warns:
 #: a controller's first solve or a late discovery takes a moment, which is no reason to warn.
 IDLE_WARNING_PERIODS = 10
@@ -80,7 +83,10 @@ class SimNode(Node):
         self.wait_for_subscribers = self._declare('wait_for_subscribers')
         self.exit_on_finish = self._declare('exit_on_finish')
         self.rate_hz = self._declare('rate_hz')
-        self.wait_for_publishers = self._declare('wait_for_publishers')
+        self.clock_start = self._declare('clock_start')
+        if self.clock_start not in ('command', 'matched', 'now'):
+            raise ValueError("parameter clock_start must be 'command', 'matched' or 'now', got "
+                             f'{self.clock_start!r}')
         self.holding = False        # the reel hold is engaged (timed)
         self.done = False   # run_node stops spinning once set
         self.last_accepted = None   # (step, tension) of the last command accepted in lockstep
@@ -101,7 +107,8 @@ class SimNode(Node):
             self.sim_stamp()))
 
         self.held_tension = self.safe_tension
-        self.started = False        # timed: the clock has started (a controller matched)
+        self.started = False        # timed: the run's clock has started (`clock_start`)
+        self.first_command = None   # timed: the command that started it
         self.command_timeouts = 0
         self.last_command_wall = self.state_published_wall = time.monotonic()
         self.next_idle_warning = 0.0
@@ -126,8 +133,6 @@ class SimNode(Node):
         self.parameters.live('progress_every', lambda v: setattr(self, 'progress_every', v))
         self.parameters.live('wait_for_subscribers',
                              lambda v: setattr(self, 'wait_for_subscribers', v))
-        self.parameters.live('wait_for_publishers',
-                             lambda v: setattr(self, 'wait_for_publishers', v))
         self.parameters.live('exit_on_finish', lambda v: setattr(self, 'exit_on_finish', v))
         self.parameters.live('max_steps', self.set_max_steps)
         self.get_logger().info(
@@ -214,6 +219,8 @@ class SimNode(Node):
             self.get_logger().info(f'lockstep: ignored the stop command {msg.tension:.4g} N '
                                    '(it answers no state)', throttle_duration_sec=5.0)
             return
+        if self.mode == 'timed' and not self.started and msg.step != self.plant.step_index:
+            return      # a run waits for the answer to its first state, not an older one
         rejection = self.plant.accept(msg.tension, step)
         if rejection is not None:
             self.get_logger().warning(
@@ -228,9 +235,10 @@ class SimNode(Node):
         self.last_accepted = (step, msg.tension)
         if self.mode == 'lockstep':
             self.step(msg.tension)
-        else:
-            self.held_tension = msg.tension
-            self.set_holding(msg.hold, 'the controller stopped')
+            return
+        self.first_command = self.first_command or msg
+        self.held_tension = msg.tension
+        self.set_holding(msg.hold, 'the controller stopped')
 
     def set_holding(self, holding, why=''):
         """Engage (with the reason) or release the reel hold (timed)."""
@@ -249,20 +257,29 @@ class SimNode(Node):
     def on_tick(self):
         if self.plant.status is not Status.RUNNING:
             return
-        if not self.started and self.writers.count < self.wait_for_publishers:
-            self.get_logger().info(f'timed: waiting for {self.wait_for_publishers} writers of '
-                                   f'{TENSION_TOPIC} ({self.writers.count} matched) before the '
-                                   'clock starts', throttle_duration_sec=5.0)
-            self.last_command_wall = time.monotonic()
-            self.publish_clock()
-            self.publish_state()
-            return
-        self.started = True
+        if not self.started:
+            waiting = self.waiting_for()
+            if waiting:
+                self.get_logger().info(f'timed: waiting for {waiting} before the clock of run '
+                                       f'{self.plant.run} starts', throttle_duration_sec=5.0)
+                self.last_command_wall = time.monotonic()
+                self.publish_clock()
+                self.publish_state()
+                return
+            self.started = True
         if time.monotonic() - self.last_command_wall > self.command_timeout \
                 and not self.holding:
             self.command_timeouts += 1
             self.set_holding(True, f'no valid tension command for {self.command_timeout} s')
         self.step(self.held_tension, hold=self.holding)
+
+    def waiting_for(self):
+        """Timed: what the run's clock still waits for ('' when nothing: `clock_start`)."""
+        if self.clock_start == 'matched' and not self.writers.count:
+            return f'a writer of {TENSION_TOPIC} to match'
+        if self.clock_start == 'command' and self.first_command is None:
+            return f"the first command answering step {self.plant.step_index}"
+        return ''
 
     def on_idle_check(self):
         """Lockstep: publish the state again when its command is late (the first state once
@@ -400,6 +417,7 @@ class SimNode(Node):
         self.last_command_wall = time.monotonic()
         self.held_tension = self.safe_tension
         self.holding = False
+        self.started, self.first_command = False, None    # timed: the new run waits too
         self.last_accepted = None   # step numbers start again
         self.accepted_at_start = self.plant.accepted
         self.publish_status()

@@ -2,13 +2,14 @@
 
     ros2 run tsr_koopman_ctrl deploy [--law koopman_mpc] [--model DIR|NAME] [--preset NAME]
         [--set SECTION.SETTING=VALUE ...] [--plant NAME|FILE] [--steps 2000] [--x0 ...]
-        [--namespace NS]
+        [--mode lockstep|timed] [--namespace NS]
 
-Starts the simulator (lockstep), the controller and the recorder as three processes on a DDS
-domain of their own (`deployment.Deployment`), waits for the run to end, closes the bag and
-reads the run back from it: every figure of the table comes from the bag. Exit status 1 if the
-state left the domain or a node failed, 2 for a bad option (one line, before any node starts),
-130 on Ctrl-C (the bag is closed and the steps run so far summarised).
+Starts the simulator (lockstep, or `--mode timed`: the hardware rehearsal), the controller and
+the recorder as three processes on a DDS domain of their own (`deployment.Deployment`), waits
+for the run to end, closes the bag and reads the run back from it: every figure of the table
+comes from the bag. Exit status 1 if the state left the domain or a node failed, 2 for a bad
+option (one line, before any node starts), 130 on Ctrl-C (the bag is closed and the steps run
+so far summarised).
 """
 
 import argparse
@@ -45,6 +46,12 @@ def parse_args(argv):
                         'noisy_sensors) or a YAML file of plant parameters')
     parser.add_argument('--steps', type=cli.STEPS, default=2000,
                         help='simulation steps of h = 0.01 tau (paper: 2000)')
+    parser.add_argument('--mode', default='lockstep', choices=('lockstep', 'timed'),
+                        help='lockstep: one simulator step per command (as fast as the law '
+                        'computes); timed: --rate-hz steps per wall second whatever the '
+                        'controller does, as hardware runs (the newest state answered)')
+    parser.add_argument('--rate-hz', type=cli.number(above=0), default=100.0,
+                        help='timed mode: simulator steps per wall second (default 100)')
     parser.add_argument('--x0', type=float, nargs=4, default=dynamics.PAPER_INITIAL_STATE,
                         metavar=('THETA', 'THETA_RATE', 'L_MINUS_1', 'L_RATE'),
                         help='dimensionless initial state (paper: 0 0 -0.99 0.5)')
@@ -65,7 +72,8 @@ def parse_args(argv):
         settings = parsed_settings(args.set)
         args.deployment = Deployment(
             args.law, settings, model=args.model, preset=args.preset, plant=args.plant,
-            x0=args.x0, steps=args.steps, namespace=args.namespace, domain=args.domain,
+            x0=args.x0, steps=args.steps, mode=args.mode, rate_hz=args.rate_hz,
+            namespace=args.namespace, domain=args.domain,
             bags=args.bags, timeout=args.timeout)
     except ValueError as error:
         parser.error(str(error))

@@ -36,11 +36,23 @@ def planar_state(x):
     return x[:dynamics.PLANAR_DIM]
 
 
+#: States a law is warmed up from (`Law.warm_up`): the paper's start, mid-deployment and the
+#: deployed equilibrium.
+WARM_UP_STATES = (dynamics.PAPER_INITIAL_STATE, np.array([-0.4, -0.6, -0.7, 0.5]),
+                  dynamics.equilibrium_state())
+
+
 class Law:
     name = ''
     Settings = LawSettings
     #: The learned model the law plans with (`model.LiftedModel`), or None.
     model = None
+    #: Under the runtime-assurance supervisor (`supervisor.py`): the law that flew the last
+    #: step ('learned' or 'fallback'), why the monitor distrusts the learned law ('' when it
+    #: does not) and how often the flying law changed; '', '' and 0 for a law flown alone.
+    flying = ''
+    monitor = ''
+    switches = 0
 
     def __init__(self, settings=None, *, h=dynamics.PAPER_STEP, u_max=dynamics.TENSION_LIMIT,
                  **overrides):
@@ -54,6 +66,22 @@ class Law:
     def reset(self):
         self.fallbacks = 0
 
+    def resume(self):
+        """After a pause in the same run (the controller deactivated and activated again):
+        forget the plan, keep what was learnt about the plant (a disturbance estimate), so
+        that the first command after it is where the plant is. Stateless laws: `reset`."""
+        self.reset()
+
+    def warm_up(self):
+        """Compute from a few representative states (WARM_UP_STATES) and forget them: what is
+        built or cached on first use (compiled functions, imports) is built now, so that the
+        first command of a run is as fast as the rest."""
+        for x in WARM_UP_STATES:
+            self.reset()
+            for _ in range(3):
+                self.applied(self.compute(x))
+        self.reset()
+
     def compute(self, x):
         """The tension for the measured state x (`planar_state` checks it)."""
         raise NotImplementedError
@@ -62,6 +90,11 @@ class Law:
         """The tensions the law may plan with, when they are not [0, u_max] (an offset-free
         wrapper gives the felt range the actuator can reach). Laws without bounds of their own
         ignore it: the clamp after them holds the limit."""
+
+    def elapsed(self, steps):
+        """The next state comes `steps` > 1 samples after the last one the law computed for: a
+        real-time loop dropped the states between, over which the last command was held. A
+        law with memory of time (a plan, an observer) catches up; the others ignore it."""
 
     def observe(self, x):
         """The law is not asked for a tension this step but sees the state x (the supervisor's

@@ -51,9 +51,10 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
         result = step(measured)
         if compute_seconds is not None:
             compute_seconds.append(result.compute_seconds)
-        if result.outcome is Outcome.NON_FINITE_OUTPUT:
-            raise ValueError(f'{controller.name} produced a non-finite tension at step '
-                             f'{len(tensions)}')
+        if result.outcome in (Outcome.NON_FINITE_OUTPUT, Outcome.NON_FINITE_STATE,
+                              Outcome.REFUSED_STATE):
+            raise ValueError(f'{controller.name} gave no tension at step {len(tensions)}: '
+                             f'{result.outcome.name.lower()}')
         u = result.tension
         tension = scale.u_to_tension(u)
         if sim.accept(tension) is not None:

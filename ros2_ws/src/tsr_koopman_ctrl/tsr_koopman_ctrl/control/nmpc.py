@@ -144,6 +144,8 @@ class Nmpc(Law):
         super().__init__(settings, **kwargs)
         s = self.settings
         self.map = self.make_map()
+        #: The map the cold start rolls its plans out on (`rollout`, `lqr_plan`).
+        self.guide = self.make_guide()
         if abs(self.map.h - self.h) > 1e-12:
             raise ValueError(f'{self.name}: the map steps {self.map.h:g} tau, the loop '
                              f'h = {self.h:g}')
@@ -167,6 +169,9 @@ class Nmpc(Law):
     def make_map(self):
         raise NotImplementedError
 
+    def make_guide(self):
+        return self.map
+
     def reset(self):
         super().reset()
         #: The plan (N,) and its node states (N + 1, n), p_0 the state it was made from.
@@ -180,6 +185,8 @@ class Nmpc(Law):
         self.felt_plan = None
         #: The state now less the map's one-step prediction of it (`residual`).
         self.missed = None
+        #: Samples between the last state and the next (`elapsed`).
+        self.age = 1
         #: The tensions the plans may take: [0, u_max], or the felt range the offset-free
         #: wrapper sets ([phi(0), phi(u_max)]: what the actuator can make the plant feel).
         self.felt_range = (0.0, self.u_max)
@@ -195,10 +202,14 @@ class Nmpc(Law):
         x = planar_state(x)
         if self.plan is None:
             return self.fly(self.cold_start(x))
-        # 1. shift: node j advanced one sample lies at the new grid's time j
-        shifted = np.clip(shift_plan(self.plan, self.starts, self.durations, self.h),
+        # 1. shift: node j advanced one sample lies at the new grid's time j (`age` samples
+        # when the loop dropped states: the flown tension was held over them)
+        age, self.age = self.age, 1
+        shifted = np.clip(shift_plan(self.plan, self.starts, self.durations, age * self.h),
                           *self.felt_range)
-        nodes = self.map.step(self.nodes, np.r_[self.felt_plan, self.felt_plan[-1]])
+        felt = np.r_[self.felt_plan, self.felt_plan[-1]]
+        nodes = (self.map.step(self.nodes, felt) if age == 1 else
+                 self.map.advance(self.nodes, felt, np.full(len(felt), age)))
         self.missed = x - nodes[0]       # nodes[0]: the last state advanced under what flew
         nodes[0] = x
         step = self.iterate(nodes, shifted) if np.all(np.isfinite(nodes)) else None
@@ -221,6 +232,14 @@ class Nmpc(Law):
             self.actuator = tension + (start - tension) * self.lag.decay
         return tension
 
+    def elapsed(self, steps):
+        """The next state comes `steps` samples after the last: the plan is shifted that far,
+        the actuator model advanced under the tension flown, held over the ones between."""
+        self.age = int(steps)
+        if self.lag is not None and self.actuator is not None and steps > 1:
+            self.actuator = self.flown + (self.actuator - self.flown) * self.lag.decay ** (
+                steps - 1)
+
     def applied(self, tension):
         """`tension` flew this step, not the law's own (a clamp, an excitation, another law):
         it is the rate term's u_{-1} and the tension the lag model's actuator advanced under."""
@@ -231,6 +250,12 @@ class Nmpc(Law):
         if self.plan is not None and self.lag is None:
             # The plan's first interval is what flew: the next shift advances the state under it
             self.plan[0] = self.felt_plan[0] = self.flown
+
+    def resume(self):
+        """A cold start at the next step, from the plant as it is then."""
+        fallbacks = self.fallbacks
+        self.reset()
+        self.fallbacks = fallbacks
 
     def observe(self, x):
         """Not flown this step: the plan is dropped (the next step is a cold start)."""
@@ -289,20 +314,25 @@ class Nmpc(Law):
             else:
                 break
             plan, nodes, solved = candidate, candidate_nodes, True
+        if self.guide is not self.map:
+            # The steps that follow start from the plan flown on the law's own map (no
+            # defects), where it stays in the domain.
+            own = self.map.rollout(x, self.felt(plan), self.counts)
+            nodes = own if in_domain(own) else nodes
         self.fallbacks += count and not solved
         self.plan, self.nodes, self.felt_plan = plan, nodes, self.felt(plan)
         return float(plan[0])
 
     def rollout(self, x, plan):
-        """The node states (N + 1, n) of `plan` flown on the map from x, interval after
-        interval (single shooting: for the cold start only)."""
-        return self.map.rollout(x, self.felt(plan), self.counts)
+        """The node states (N + 1, n) of `plan` flown from x, interval after interval, on the
+        map the cold start is guided by (`guide`; single shooting: for the cold start only)."""
+        return self.guide.rollout(x, self.felt(plan), self.counts)
 
     def lqr_plan(self, x):
         """The linearised LQR law (Q = I, R = 1) flown on the map over the grid, its tension
         held over each interval: (plan (N,), node states (N + 1, n))."""
-        plan, nodes = self.map.feedback_rollout(x, dynamics.EQUILIBRIUM_TENSION, self.lqr_gain,
-                                                self.felt_range, self.counts)
+        plan, nodes = self.guide.feedback_rollout(x, dynamics.EQUILIBRIUM_TENSION,
+                                                  self.lqr_gain, self.felt_range, self.counts)
         if self.lag is not None:   # (the LQR law's tensions, flown through the lag)
             nodes = self.rollout(x, plan)
         return plan, self.floored(nodes)
@@ -480,6 +510,12 @@ class KoopmanNmpcSettings(NmpcSettings):
     precision: str = setting('float32', "the map's floating-point type: 'float32' about "
                              'halves its time (~1e-7 relative rounding)',
                              choices=('float64', 'float32'))
+    cold_guide: str = setting('model', "what a cold start (the first step, a failed QP) "
+                              "rolls its trial plans out on: 'model' (the learned map, sample "
+                              "by sample: 25-450 ms) or 'physics' (the nominal equations, one "
+                              "compiled-graph call: ~10 ms a cold start, and another law: the "
+                              "plans it starts from differ); the QP steps use the learned map "
+                              "either way", choices=('model', 'physics'))
 
 
 class KoopmanNmpc(Nmpc):
@@ -494,3 +530,6 @@ class KoopmanNmpc(Nmpc):
         self.model = load_model(self.settings.model)
         self.exact_sensitivities = self.settings.sensitivities == 'exact'
         return LearnedMap(self.model, dtype=self.settings.precision)
+
+    def make_guide(self):
+        return PhysicsMap(self.h) if self.settings.cold_guide == 'physics' else self.map

@@ -131,6 +131,18 @@ class DisturbanceObserver:
         self.estimate, self.covariance = start, self.initial_covariance.copy()
         return self.state.copy()
 
+    def coast(self, command, samples):
+        """Predict `samples` samples ahead under `command` held, with no measurement (a
+        real-time loop dropped them): the estimate and its growing covariance."""
+        for _ in range(samples):
+            if self.estimate is None:
+                return
+            predicted, jacobian = self.linearised_step(self.estimate, float(command))
+            if not (np.all(np.isfinite(predicted)) and np.all(np.isfinite(jacobian))):
+                return                   # the next update restarts from the measurement
+            self.covariance = jacobian @ self.covariance @ jacobian.T + self.process_covariance
+            self.estimate = predicted
+
     def correct(self, y, predicted, jacobian):
         """The Kalman measurement update after the prediction `predicted`, Jacobian F_s."""
         covariance = jacobian @ self.covariance @ jacobian.T + self.process_covariance

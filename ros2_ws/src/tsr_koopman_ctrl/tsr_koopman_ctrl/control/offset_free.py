@@ -105,6 +105,18 @@ class OffsetFree(Law):
         self.last_command = command   # the observer must know the clamped command
         return command
 
+    def elapsed(self, steps):
+        """The observer predicts across the samples dropped, under the command held."""
+        if self.last_command is not None:
+            self.observer.coast(self.last_command, steps - 1)
+        self.law.elapsed(steps)
+
+    def resume(self):
+        """The law forgets its plan; the observer keeps its disturbance estimate and starts
+        again from the next measurement (the plant moved while no command was flown)."""
+        self.law.resume()
+        self.last_command = None
+
     def observe(self, x):
         """The observer keeps up with the measurement; the law drops its plan."""
         self.observer.update(planar_state(x), self.last_command)

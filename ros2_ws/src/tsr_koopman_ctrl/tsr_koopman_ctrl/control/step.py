@@ -4,12 +4,18 @@ tension for a measured state, the excitation added, the clamp, and the law told 
     step = ControlStep(make_controller('koopman_mpc'), TensionLimiter(5.0))
     step.reset()
     result = step(x)      # result.tension (clamped, dimensionless), .outcome, .compute_seconds
+
+A state that is not finite, or that no TSR can be in (`tsr_sim.dynamics.plausible`), is refused
+before the law sees it: no tension, and the law and its observer never remember it.
 """
 
 from dataclasses import dataclass
 import enum
 import math
 import time
+
+import numpy as np
+from tsr_sim import dynamics
 
 
 class Outcome(enum.IntEnum):
@@ -18,7 +24,9 @@ class Outcome(enum.IntEnum):
     OK = 0
     CLAMPED = 1             # the tension was outside [0, u_max] and was clamped
     SOLVER_FALLBACK = 2     # the law's optimiser failed and it fell back
+    NON_FINITE_STATE = 3    # the state was not finite: refused, no command
     NON_FINITE_OUTPUT = 5   # the law gave a non-finite tension: no command
+    REFUSED_STATE = 6       # the state is no TSR state (`dynamics.plausible`): no command
 
 
 @dataclass
@@ -42,7 +50,29 @@ class ControlStep:
         if self.excitation is not None:
             self.excitation.reset()
 
-    def __call__(self, x):
+    def resume(self):
+        """After a pause in the same run: the law resumes (`Law.resume`)."""
+        self.law.resume()
+
+    @staticmethod
+    def check(x):
+        """None for a state the law may see, else why it is refused (NON_FINITE_STATE,
+        REFUSED_STATE)."""
+        x = np.asarray(x, dtype=float)
+        if not np.all(np.isfinite(x)):
+            return Outcome.NON_FINITE_STATE
+        if x.ndim != 1 or not dynamics.plausible(x[:dynamics.PLANAR_DIM]):
+            return Outcome.REFUSED_STATE
+        return None
+
+    def __call__(self, x, elapsed=1):
+        """The step for state x, measured `elapsed` samples after the last one (a real-time
+        loop drops states it could not answer in time: the law catches up, `Law.elapsed`)."""
+        refused = self.check(x)
+        if refused is not None:
+            return StepResult(math.nan, 0.0, refused, 0.0)
+        if elapsed > 1:
+            self.law.elapsed(elapsed)
         fallbacks, clamped = self.law.fallbacks, self.limiter.clamped
         start = time.perf_counter()
         u = self.law.compute(x)

@@ -94,7 +94,7 @@ class Supervisor(Law):
         self.learned.reset()
         self.fallback.reset()
         self.flying = LEARNED
-        self.reason = ''             # why the monitor distrusts the learned law now ('': not)
+        self.monitor = ''            # why the monitor distrusts the learned law now ('': not)
         self.switches = 0
         self.trusted_steps = 0
         self.faults = []             # (step, reason) of the learned law's recent faults
@@ -117,9 +117,9 @@ class Supervisor(Law):
             self.learned.observe(x)
         else:
             learned = self.run(self.learned, x)
-            self.reason = self.judge(x, learned[1])
-            if self.reason:
-                self.reasons[self.reason] += 1
+            self.monitor = self.judge(x, learned[1])
+            if self.monitor:
+                self.reasons[self.monitor] += 1
                 self.trusted_steps = 0
                 if self.flying == LEARNED:
                     self.switch(FALLBACK)
@@ -148,6 +148,22 @@ class Supervisor(Law):
         before = law.fallbacks
         tension = law.compute(x)
         return tension, law.fallbacks > before
+
+    def elapsed(self, steps):
+        self.learned.elapsed(steps)
+        self.fallback.elapsed(steps)
+
+    def resume(self):
+        """Both laws forget their plans and keep what their observers learnt; the monitor's
+        verdict stands (a distrusted learned law still has to earn the plant back)."""
+        self.learned.resume()
+        self.fallback.resume()
+
+    def warm_up(self):
+        """Both laws warmed (the fallback too, though it may not fly for a long time)."""
+        self.learned.warm_up()
+        self.fallback.warm_up()
+        self.reset()
 
     def applied(self, command):
         """Both laws are told what was sent: the one that did not fly keeps up with it."""
@@ -189,5 +205,5 @@ class Supervisor(Law):
 
     def diagnostics(self):
         return {**self.learned.diagnostics(), 'flying': self.flying,
-                'monitor': self.reason or 'trusted', 'supervisor_switches': self.switches,
+                'monitor': self.monitor or 'trusted', 'supervisor_switches': self.switches,
                 **{f'untrusted_{reason}': n for reason, n in self.reasons.items()}}

@@ -1,39 +1,53 @@
-"""Controller node, a managed (lifecycle) node: answers every TSR state with a tension command
-for the same step.
+"""Controller node, a managed (lifecycle) node: answers the newest TSR state with a tension
+command for the same step.
 
 Lifecycle (rclpy.lifecycle, as ros2_control and nav2 manage their nodes):
-  configure   reads the parameters, loads the model and builds the law, its observer and the
-              excitation (a bad law, setting or model fails the transition with one line);
-              publishes the RunInfo the bag keeps
-  activate    resets the law, its observer and the excitation, and starts commanding
-  deactivate  stops commanding: the node publishes `safe_tension` once (step NO_STEP: the
-              equilibrium tension, which holds a deployed tether) and then nothing until it
-              is activated again; a timed simulator or hardware holds that tension, a lockstep
-              simulator waits
-  cleanup     frees the law and its model
+  configure   reads the parameters, loads the model, builds the law (under the runtime-assurance
+              supervisor for a learned law), its observer and the excitation, and warms them
+              up (`Law.warm_up`: the first command is as fast as the rest); a bad law, setting
+              or model fails the transition with one line; publishes the RunInfo the bag keeps
+              and creates the command writer (a timed simulator waiting for a commander starts
+              its clock once the law is ready)
+  activate    starts commanding; within the same run the law resumes (`Law.resume`: its plan
+              is dropped, its observer keeps the disturbance it learnt), so a re-activation is
+              bumpless on a plant unlike the model; a new run starts afresh
+  deactivate  stops commanding: the node sends the stop (`hold` set, step NO_STEP,
+              `safe_tension` for a plant without a hold) once and then nothing until it is
+              activated again; a timed simulator or hardware engages its reel hold, which holds
+              the tether from any state of a deployment; a lockstep simulator waits
+  cleanup     frees the law and its model and removes the command writer
+  shutdown    from active, sends the stop first; the process then exits
 With `autostart` (default true, as nav2's lifecycle manager brings nodes up) the node configures
 and activates itself at start, so `ros2 run` is one command; a failure then stops the process
 with one line (exit 2).
 
+The loop as hardware runs it. The state subscription keeps the newest state only (KEEP_LAST 1):
+a state superseded while the law computed is dropped and counted (`dropped_states`), so the law
+always acts on the plant as it is now, never on a backlog. A run begins where the simulator
+says so (`TsrState.run` changes), never because a step number went back; within a run, a state
+older than one already answered is dropped and counted, and a state repeated exactly (a
+lockstep simulator republishes it when its command is late) gets the command it already got,
+resent. A state that is not finite or that no TSR can be in (`tsr_sim.dynamics.plausible`: a
+length <= 0 or past twice the tether, a swing past pi) is refused and counted and never reaches
+the law or its observer. A compute longer than the period between states is an overrun,
+counted. With no state for `state_timeout` wall seconds the node sends the stop every
+`state_timeout` seconds until states return.
+
 SI state in, SI tension out; the law (`tsr_koopman_ctrl.control`) works in the paper's
 dimensionless variables, converted through `tsr_sim.units`. Every step goes through
-`control.step.ControlStep` (the law, the excitation, the clamp to [0, max_tension], the law told
-what was sent), the step the ROS-free `closed_loop` takes too. A new run of the simulator (a
-reset: the step going back, or the same step with another state) resets the law and its
-observer first, so a reset run repeats the first. A state repeated exactly (a lockstep
-simulator republishes it when its command is late) gets the command it already got, resent,
-without running the law again. A non-finite state gets no command. With no state for
-`state_timeout` wall seconds the node publishes `safe_tension` every `state_timeout` seconds
-with step `tsr_sim.wire.NO_STEP`, until states return. Commands and statuses carry the stamp of
-the state they answer, so a bag has one time base. Each state's outcome and the law's compute
-time go out on `tsr/controller_status`, health on /diagnostics.
+`control.step.ControlStep` (the state checks, the law, the excitation, the clamp to
+[0, max_tension], the law told what was sent), the step the ROS-free `closed_loop` takes too.
+Commands and statuses carry the stamp of the state they answer, so a bag has one time base.
+Each state's outcome, which law flew it and why the supervisor distrusts the learned law, and
+the law's compute time go out on `tsr/controller_status`; health on /diagnostics.
 
 Parameters: `law` picks the law; every law's settings are declared as `<law>.<setting>` from its
-Settings class (the one declaration), with `observer.*` and `excitation.*`. Those and the units
-scale are read at configure: set them on an unconfigured node (refused otherwise, with the
-reason). `max_tension`, `safe_tension`, `state_timeout` and `wait_for_subscribers` are applied
-live. A parameter under a law's, `observer.` or `excitation.` section that names no setting
-there stops the node at start with one line (ROS would drop it without a word).
+Settings class (the one declaration), with `observer.*`, `supervisor.*` and `excitation.*`.
+Those and the units scale are read at configure: set them on an unconfigured node (refused
+otherwise, with the reason). `max_tension`, `safe_tension`, `state_timeout` and
+`wait_for_subscribers` are applied live. A parameter under a law's, `observer.`, `supervisor.`
+or `excitation.` section that names no setting there stops the node at start with one line
+(ROS would drop it without a word).
 """
 
 from collections import deque
@@ -46,14 +60,15 @@ import numpy as np
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from tsr_msgs.msg import ControllerStatus, Excitation, RunInfo, TensionCommand, TsrState
 from tsr_sim import dynamics
+from tsr_msgs.msg import SimStatus
 from tsr_sim.ros_io import (declare, declare_scale, given_parameter_names, Health, LATCHED_QOS,
-                            LOOP_PUBLISHER_QOS, LOOP_QOS, MatchedReaders, Parameters, run_node,
-                            steady_timer)
+                            LOOP_PUBLISHER_QOS, MatchedReaders, NEWEST_QOS, Parameters,
+                            run_node, steady_timer)
 from tsr_sim.plant import SCALE_PARAMETERS
 from tsr_sim.units import Scale
 from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, NO_STEP, RUN_INFO_TOPIC,
-                          run_info_msg, scale_dict, STATE_TOPIC, state_from_msg, TENSION_TOPIC,
-                          tension_msg)
+                          run_info_msg, scale_dict, SIM_STATUS_TOPIC, STATE_TOPIC, state_from_msg,
+                          TENSION_TOPIC, tension_msg)
 
 from tsr_koopman_ctrl.control import CONTROLLERS, make_controller, TensionLimiter
 from tsr_koopman_ctrl.control.excitation import Excitation as ExcitationSource
@@ -64,13 +79,15 @@ from tsr_koopman_ctrl.model.model_file import weights_sha256
 
 #: Compute times kept for the median and p99 on /diagnostics.
 COMPUTE_WINDOW = 1000
+#: Intervals between states kept for the period a compute must fit in (their median).
+PERIOD_WINDOW = 50
 #: Parameters applied when set; the others (law, settings, scale) are read at configure.
 LIVE = ('max_tension', 'safe_tension', 'state_timeout', 'wait_for_subscribers',
         'wait_for_status_subscribers')
 #: Lifecycle state ids (lifecycle_msgs/State) and their labels.
-UNCONFIGURED, INACTIVE, ACTIVE = 1, 2, 3
-STATE_LABELS = {UNCONFIGURED: 'unconfigured', INACTIVE: 'inactive', ACTIVE: 'active', 4:
-                'finalized'}
+UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED = 1, 2, 3, 4
+STATE_LABELS = {UNCONFIGURED: 'unconfigured', INACTIVE: 'inactive', ACTIVE: 'active',
+                FINALIZED: 'finalized'}
 
 
 def declare_settings(node, section, settings_class):
@@ -119,11 +136,12 @@ class ControllerNode(LifecycleNode):
             1e-9, 1e9, read_only=False)
         self.safe_tension = declare(
             self, 'safe_tension', Scale().u_to_tension(dynamics.EQUILIBRIUM_TENSION),
-            'published on deactivate and when no state arrives for state_timeout [N] (default: '
+            'the tension of the stop command (sent on deactivate, shutdown and when no state '
+            'arrives for state_timeout) for a plant without a hold of its own [N] (default: '
             'u = 3 at the default units, which holds the deployed equilibrium)', 0.0, 1e9,
             read_only=False)
         self.state_timeout = declare(self, 'state_timeout', 5.0, 'wall seconds without a state '
-                                     'before safe_tension is published', 0.01, 3600.0,
+                                     'before the stop command is sent', 0.01, 3600.0,
                                      read_only=False)
         self.wait_for_subscribers = declare(
             self, 'wait_for_subscribers', 0, 'answer no state until this many readers of the '
@@ -132,9 +150,10 @@ class ControllerNode(LifecycleNode):
             self, 'wait_for_status_subscribers', 0, 'answer no state until this many readers of '
             'the controller status (and excitation) have matched (a recorder)', 0, 1000,
             read_only=False)
-        self.counts = {'commands': 0, 'non_finite_states': 0, 'state_timeouts': 0,
-                       'resent': 0, 'runs': 0}
-        self.reported = {'fallbacks': 0, 'non_finite': 0, 'non_finite_states': 0}
+        self.counts = {'commands': 0, 'non_finite_states': 0, 'refused_states': 0,
+                       'dropped_states': 0, 'overruns': 0, 'state_timeouts': 0, 'resent': 0,
+                       'runs': 0}
+        self.reported = {'fallbacks': 0, 'non_finite': 0, 'refused': 0}
         self.failure = ''            # why the last configure failed
         self.starting = False
         self.lifecycle_state = UNCONFIGURED
@@ -143,12 +162,19 @@ class ControllerNode(LifecycleNode):
         self.active = False
         self.non_finite_outputs = 0
         self.last_answer = None      # ((step, SI state bytes), command) of the last state answered
+        self.run = None              # TsrState.run of the states answered
+        self.last_step = None        # the latest step of that run taken
         self.last_state_wall = time.monotonic()
-        self.last_state = None       # dimensionless state of the last state seen
+        self.last_state = None       # dimensionless state of the last state taken
+        self.refusing = False        # the last state was refused (not finite, no TSR state)
+        self.sim_status = None       # the simulator's last SimStatus (a halted plant)
         self.compute_seconds = deque(maxlen=COMPUTE_WINDOW)
+        self.intervals = deque(maxlen=PERIOD_WINDOW)
+        # The command writer exists from configure on (created there, after the law is warm),
+        # as a managed node's publishers do: a timed simulator or hardware that waits for a
+        # commander starts its clock once the law can answer.
         self.readers = MatchedReaders()
-        self.pub = self.create_publisher(TensionCommand, TENSION_TOPIC, LOOP_PUBLISHER_QOS,
-                                         event_callbacks=self.readers.callbacks)
+        self.pub = None
         self.status_readers = MatchedReaders()
         self.status_pub = self.create_publisher(ControllerStatus, CONTROLLER_STATUS_TOPIC,
                                                 LOOP_PUBLISHER_QOS,
@@ -156,7 +182,9 @@ class ControllerNode(LifecycleNode):
         self.excitation_readers = MatchedReaders()
         self.run_info_pub = self.create_publisher(RunInfo, RUN_INFO_TOPIC, LATCHED_QOS)
         self.excitation_pub = None
-        self.create_subscription(TsrState, STATE_TOPIC, self.on_state, LOOP_QOS)
+        self.create_subscription(TsrState, STATE_TOPIC, self.on_state, NEWEST_QOS)
+        self.create_subscription(SimStatus, SIM_STATUS_TOPIC,
+                                 lambda msg: setattr(self, 'sim_status', msg), LATCHED_QOS)
         self.timeout_timer = steady_timer(self, self.state_timeout, self.check_state_timeout)
         self.health = Health(self, 'controller', self.diagnose)
         self.parameters = Parameters(self, refuse=self.refuse_parameter)
@@ -200,22 +228,29 @@ class ControllerNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state):
-        self.step.reset()
-        self.last_answer, self.last_state = None, None
+        # Within the same run the law resumes where the plant is (bumpless); a new run, seen
+        # at its first state, starts it afresh.
+        self.step.resume()
+        self.last_answer = None
+        if self.run is not None:
+            self.last_step = -1       # the states missed while inactive are no drops
         self.last_state_wall = time.monotonic()
+        self.intervals.clear()
         self.active, self.lifecycle_state = True, ACTIVE
         self.get_logger().info(f'active: {self.law_name} commanding')
         return TransitionCallbackReturn.SUCCESS
 
     def on_deactivate(self, state):
         self.active, self.lifecycle_state = False, INACTIVE
-        self.publish_safe_tension(ControllerStatus.SAFE_TENSION)
-        self.get_logger().info(f'inactive: stopped commanding (safe tension '
-                               f'{self.safe_tension:.4g} N sent once)')
+        self.publish_stop(ControllerStatus.SAFE_TENSION)
+        self.get_logger().info('inactive: stopped commanding (the stop sent: the plant holds; '
+                               f'{self.safe_tension:.4g} N for a plant without a hold)')
         return TransitionCallbackReturn.SUCCESS
 
     def on_cleanup(self, state):
         self.law = self.step = None
+        self.destroy_publisher(self.pub)
+        self.pub = None
         if self.excitation_pub is not None:
             self.destroy_publisher(self.excitation_pub)
             self.excitation_pub = None
@@ -223,8 +258,12 @@ class ControllerNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state):
+        if self.active and self.pub is not None:
+            self.publish_stop(ControllerStatus.SAFE_TENSION)
+            self.get_logger().info('shut down while active: the stop sent')
         self.active, self.law, self.step = False, None, None
-        self.lifecycle_state = 4
+        self.lifecycle_state = FINALIZED
+        self.done = True          # run_node ends the process
         return TransitionCallbackReturn.SUCCESS
 
     def build(self):
@@ -235,14 +274,23 @@ class ControllerNode(LifecycleNode):
         sections = settings_sections()
         observer = sections['observer'](**settings_values(self, 'observer',
                                                           sections['observer']))
+        supervisor = sections['supervisor'](**settings_values(self, 'supervisor',
+                                                              sections['supervisor']))
         excitation = ExcitationSource(sections['excitation'](
             **settings_values(self, 'excitation', sections['excitation'])))
         self.scale = Scale(**{name: self.get_parameter(name).value
                               for name in SCALE_PARAMETERS})
         self.limiter = TensionLimiter(self.scale.tension_to_u(self.max_tension))
-        self.law = make_controller(self.law_name, settings, observer,
+        self.law = make_controller(self.law_name, settings, observer, supervisor,
                                    u_max=self.scale.tension_to_u(self.max_tension))
+        self.law.warm_up()
         self.step = ControlStep(self.law, self.limiter, excitation)
+        self.step.reset()
+        self.run = self.last_step = None
+        if self.pub is None:
+            self.readers = MatchedReaders()
+            self.pub = self.create_publisher(TensionCommand, TENSION_TOPIC, LOOP_PUBLISHER_QOS,
+                                             event_callbacks=self.readers.callbacks)
         model = self.law.model
         self.model_info = ({} if model is None or not model.path else
                            {'path': model.path, 'weights_sha256': weights_sha256(model.path)})
@@ -255,21 +303,22 @@ class ControllerNode(LifecycleNode):
                 event_callbacks=self.excitation_readers.callbacks)
         self.run_info_pub.publish(run_info_msg(
             self.get_fully_qualified_name(), 'controller',
-            self.configuration(settings, observer, excitation.settings),
+            self.configuration(settings, observer, supervisor, excitation.settings),
             self.get_clock().now().to_msg()))
         self.get_logger().info(f'{self.law_name} controller ({settings}), clamp [0, '
                                f'{self.max_tension:.4g}] N'
                                + (f', model {model.path}' if model is not None else ''))
 
-    def configuration(self, settings, observer, excitation):
+    def configuration(self, settings, observer, supervisor, excitation):
         """What the bag records about this controller (RunInfo): law, settings, model and its
-        weights' hash, units scale, clamp, observer, excitation."""
+        weights' hash, units scale, clamp, observer, supervisor, excitation."""
         def plain(values):
             return {k: list(v) if isinstance(v, tuple) else v
                     for k, v in dataclasses.asdict(values).items()}
         config = {'controller': self.law_name, 'settings': plain(settings),
                   'scale': scale_dict(self.scale), 'max_tension': self.max_tension,
-                  'observer': plain(observer), 'excitation': plain(excitation)}
+                  'observer': plain(observer), 'supervisor': plain(supervisor),
+                  'excitation': plain(excitation)}
         if self.model_info:
             config['model'] = dict(self.model_info)
         return config
@@ -328,29 +377,39 @@ class ControllerNode(LifecycleNode):
         if missing:
             self.get_logger().info(f'waiting for {missing}', throttle_duration_sec=5.0)
             return
-        self.last_state_wall = time.monotonic()
+        now = time.monotonic()
         si = state_from_msg(msg, dynamics.PLANAR_DIM)
-        key = (msg.step, si.tobytes())
-        if self.last_answer is not None:
-            (last_step, _), command = self.last_answer
-            if self.last_answer[0] == key:
-                self.counts['resent'] += 1
-                self.pub.publish(command)
-                self.get_logger().info(f'state of step {msg.step} repeated: its command resent',
-                                       throttle_duration_sec=5.0)
-                return
-            if msg.step <= last_step:
-                self.new_run(last_step, msg.step)
-        if not np.all(np.isfinite(si)):
-            self.counts['non_finite_states'] += 1
-            self.last_state = None
-            self.get_logger().warning(f'non-finite state at step {msg.step}: no command',
-                                      throttle_duration_sec=1.0)
-            self.publish_status(msg.step, msg.header.stamp, ControllerStatus.NON_FINITE_STATE)
+        x = self.scale.state_from_si(si)
+        refused = self.step.check(x)
+        if refused is not None:      # before anything else: a stray message changes nothing
+            self.refuse(msg, x, refused)
             return
-        self.last_state = self.scale.state_from_si(si)
-        result = self.step(self.last_state)
+        self.refusing = False
+        key = (msg.run, msg.step, si.tobytes())
+        if self.last_answer is not None and self.last_answer[0] == key:
+            self.counts['resent'] += 1
+            self.pub.publish(self.last_answer[1])
+            self.get_logger().info(f'state of step {msg.step} repeated: its command resent',
+                                   throttle_duration_sec=5.0)
+            return
+        elapsed = 1
+        if msg.run != self.run:
+            self.new_run(msg.run)
+        elif msg.step <= self.last_step:
+            self.counts['dropped_states'] += 1      # older than one taken: out of order
+            self.get_logger().warning(f'state of step {msg.step} after step {self.last_step} '
+                                      'of the same run: dropped', throttle_duration_sec=1.0)
+            return
+        elif self.last_step >= 0:
+            elapsed = msg.step - self.last_step
+            self.counts['dropped_states'] += elapsed - 1       # superseded while computing
+            self.intervals.append((now - self.last_state_wall) / elapsed)
+        self.last_state_wall = now
+        self.last_step, self.last_state = msg.step, x
+        result = self.step(x, elapsed)
         self.compute_seconds.append(result.compute_seconds)
+        if self.intervals and result.compute_seconds > np.median(self.intervals):
+            self.counts['overruns'] += 1
         if result.outcome is Outcome.NON_FINITE_OUTPUT:
             self.non_finite_outputs += 1
             self.get_logger().error(f'{self.law_name} gave a non-finite tension at step '
@@ -372,80 +431,119 @@ class ControllerNode(LifecycleNode):
         self.publish_status(msg.step, stamp, int(result.outcome), result.compute_seconds,
                             tension)
 
-    def new_run(self, last_step, step):
-        """The simulator started a new run (reset): the law and its observer start afresh."""
-        self.counts['runs'] += 1
-        self.step.reset()
-        self.get_logger().info(f'new run (state step {step} after {last_step}): law, observer '
-                               'and excitation reset')
+    def refuse(self, msg, x, outcome):
+        """A state the law must not see (not finite, or no TSR state): counted, no command;
+        the run's step count is left as it was (a stray message is no step of it)."""
+        name = 'non_finite_states' if outcome is Outcome.NON_FINITE_STATE else 'refused_states'
+        self.counts[name] += 1
+        self.refusing = True
+        self.get_logger().warning(
+            f"{'non-finite state' if name == 'non_finite_states' else 'no TSR state'} at "
+            f'step {msg.step} ({x.tolist()}, dimensionless): refused, no command',
+            throttle_duration_sec=1.0)
+        self.publish_status(msg.step, msg.header.stamp, int(outcome))
+
+    def new_run(self, run):
+        """The simulator started a new run (`TsrState.run` changed): the law and its observer
+        start afresh. A stray state of another run would do the same: its run is no worse a
+        sign than its step, but a reset is what the counter exists to announce."""
+        if self.run is not None:
+            self.counts['runs'] += 1
+            self.step.reset()
+            self.get_logger().info(f'new run {run} (after run {self.run}): law, observer and '
+                                   'excitation reset')
+        self.run, self.last_step, self.last_answer = run, -1, None
+        self.intervals.clear()
 
     def publish_status(self, step, stamp, status, compute_time=math.nan, tension=math.nan):
+        law = self.law
         msg = ControllerStatus(step=int(step), status=int(status),
                                controller=self.law_name,
+                               flying=law.flying if law else '',
+                               monitor=law.monitor if law else '',
                                compute_time=float(compute_time), tension=float(tension),
                                commands=int(self.counts['commands']),
                                clamped=int(self.limiter.clamped if self.limiter else 0),
-                               solver_fallbacks=int(self.law.fallbacks if self.law else 0),
+                               solver_fallbacks=int(law.fallbacks if law else 0),
                                non_finite_states=int(self.counts['non_finite_states']),
-                               state_timeouts=int(self.counts['state_timeouts']))
+                               state_timeouts=int(self.counts['state_timeouts']),
+                               refused_states=int(self.counts['refused_states']),
+                               dropped_states=int(self.counts['dropped_states']),
+                               overruns=int(self.counts['overruns']),
+                               supervisor_switches=int(law.switches if law else 0))
         msg.header.stamp = stamp
         self.status_pub.publish(msg)
 
-    def publish_safe_tension(self, status):
-        """`safe_tension`, answering no state (step NO_STEP), and its status."""
+    def publish_stop(self, status):
+        """The stop: `hold` set, answering no state (step NO_STEP), `safe_tension` for a plant
+        without a hold; and its status."""
         stamp = self.get_clock().now().to_msg()
-        self.pub.publish(tension_msg(self.safe_tension, NO_STEP, stamp))
+        self.pub.publish(tension_msg(self.safe_tension, NO_STEP, stamp, hold=True))
         self.publish_status(NO_STEP, stamp, status, tension=self.safe_tension)
 
     def check_state_timeout(self):
         if not self.active or time.monotonic() - self.last_state_wall < self.state_timeout:
             return
         self.counts['state_timeouts'] += 1
-        self.get_logger().warning(f'no state for {self.state_timeout:g} s: publishing the safe '
-                                  f'tension {self.safe_tension:.4g} N', throttle_duration_sec=5.0)
-        self.publish_safe_tension(ControllerStatus.SAFE_TENSION)
+        self.get_logger().warning(f'no state for {self.state_timeout:g} s: the stop sent (the '
+                                  'plant holds)', throttle_duration_sec=5.0)
+        self.publish_stop(ControllerStatus.SAFE_TENSION)
 
     # Health --------------------------------------------------------------------------------
 
     def diagnose(self):
-        """Health (README, *Diagnostics*): ERROR when configure failed, the law gave a
-        non-finite tension, or the last state was non-finite or outside the domain (l <= 0,
-        |theta| past the tumbling swing); WARN when not active, when the law's solver fell back
-        or no state came for state_timeout since the last report; OK otherwise."""
-        fallbacks = self.law.fallbacks if self.law else 0
+        """Health (docs/nodes.md): ERROR when configure failed, the law gave a non-finite
+        tension, a state was refused since the last report or the last one was (ERROR while
+        the fault lasts), the plant is tumbling (|theta| past the tumbling swing) or the
+        simulator halted the run; WARN when not active, while the supervisor's fallback flies,
+        when the law's solver fell back, states were dropped or computes overran since the
+        last report, or no state came for state_timeout; OK otherwise."""
+        law = self.law
+        fallbacks = law.fallbacks if law else 0
         values = {'lifecycle_state': STATE_LABELS[self.lifecycle_state],
-                  'law': self.law_name or self.get_parameter('law').value}
+                  'law': self.law_name or self.get_parameter('law').value,
+                  'run': '' if self.run is None else self.run}
         values.update({f'model_{k}': v for k, v in self.model_info.items()})
         if self.compute_seconds:
             times = np.array(self.compute_seconds) * 1e3
             values.update(compute_median_ms=float(np.median(times)),
                           compute_p99_ms=float(np.percentile(times, 99)))
+        if self.intervals:
+            values['period_ms'] = float(np.median(self.intervals)) * 1e3
         values.update(self.counts, fallbacks=fallbacks, non_finite_outputs=self.non_finite_outputs,
                       clamped=self.limiter.clamped if self.limiter else 0,
                       last_step=self.last_answer[1].step if self.last_answer else '',
                       last_tension=self.last_answer[1].tension if self.last_answer else '')
-        if self.law is not None:
-            values.update(self.law.diagnostics())
+        if law is not None:
+            values.update(law.diagnostics())
         new = {'fallbacks': fallbacks, 'non_finite': self.non_finite_outputs,
-               'non_finite_states': self.counts['non_finite_states']}
-        grown = {k for k, v in new.items() if v > self.reported[k]}
+               'refused': self.counts['non_finite_states'] + self.counts['refused_states'],
+               'late': self.counts['dropped_states'] + self.counts['overruns']}
+        grown = {k for k, v in new.items() if v > self.reported.get(k, 0)}
         self.reported = new
+        x, status = self.last_state, self.sim_status
         if self.failure:
             return Health.ERROR, f'configure failed: {self.failure}', values
         if 'non_finite' in grown:
             return Health.ERROR, 'the law gave a non-finite tension', values
-        if 'non_finite_states' in grown:
-            return Health.ERROR, 'a non-finite state: no command', values
-        x = self.last_state
-        if x is not None and not (dynamics.in_domain(x)
-                                  and abs(x[dynamics.THETA]) <= dynamics.TUMBLING_SWING):
-            return Health.ERROR, 'the state left the domain or is tumbling', values
+        if self.refusing or 'refused' in grown:
+            return Health.ERROR, 'states refused (not finite, or no TSR state): no command', \
+                values
+        if status is not None and status.status == SimStatus.HALTED_OUT_OF_DOMAIN:
+            return Health.ERROR, f'the simulator halted: {status.message}', values
+        if x is not None and abs(x[dynamics.THETA]) > dynamics.TUMBLING_SWING:
+            return Health.ERROR, 'the robot is tumbling', values
         if not self.active:
             return Health.WARN, f'{STATE_LABELS[self.lifecycle_state]}: not commanding', values
+        if law is not None and law.flying == 'fallback':
+            return Health.WARN, f'the fallback law flies (monitor: {law.monitor or "trusted"})', \
+                values
         if 'fallbacks' in grown:
             return Health.WARN, "the law's solver fell back", values
+        if 'late' in grown:
+            return Health.WARN, 'late: states dropped or computes over the period', values
         if time.monotonic() - self.last_state_wall >= self.state_timeout:
-            return Health.WARN, f'no state for {self.state_timeout:g} s: safe tension', values
+            return Health.WARN, f'no state for {self.state_timeout:g} s: the stop sent', values
         return Health.OK, 'commanding', values
 
     def report(self):
@@ -456,9 +554,12 @@ class ControllerNode(LifecycleNode):
                   f'{np.median(times):.1f} us, p99 {np.percentile(times, 99):.1f} us (last '
                   f'{len(times)}), clamped {self.limiter.clamped if self.limiter else 0}, '
                   f'solver fallbacks {self.law.fallbacks if self.law else 0}, non-finite '
-                  f'states {self.counts["non_finite_states"]}, state timeouts '
-                  f'{self.counts["state_timeouts"]}, repeated states resent '
-                  f'{self.counts["resent"]}', flush=True)
+                  f'states {self.counts["non_finite_states"]}, refused states '
+                  f'{self.counts["refused_states"]}, dropped states '
+                  f'{self.counts["dropped_states"]}, overruns {self.counts["overruns"]}, state '
+                  f'timeouts {self.counts["state_timeouts"]}, repeated states resent '
+                  f'{self.counts["resent"]}, supervisor switches '
+                  f'{self.law.switches if self.law else 0}', flush=True)
 
 
 def main(args=None):
