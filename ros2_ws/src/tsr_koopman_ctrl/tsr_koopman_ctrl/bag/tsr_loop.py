@@ -71,6 +71,12 @@ BY_STEP, BY_TIME = 'step', 'time'
 MATCHES = (BY_STEP, BY_TIME)
 #: Where the sample period came from.
 H_FROM_RUN_INFO, H_FROM_OPTION, H_FROM_STAMPS = 'run_info', 'option', 'stamps'
+H_SOURCES = {H_FROM_RUN_INFO: "the simulator's RunInfo", H_FROM_OPTION: 'the option given',
+             H_FROM_STAMPS: "the states' stamps"}
+#: Where the units came from.
+UNITS_FROM_RUN_INFO, UNITS_GIVEN, UNITS_DEFAULT = 'run_info', 'given', 'default'
+UNITS_SOURCES = {UNITS_FROM_RUN_INFO: "the simulator's RunInfo", UNITS_GIVEN: 'as given',
+                 UNITS_DEFAULT: "the paper's"}
 
 
 @dataclass
@@ -104,7 +110,7 @@ class RecordedLoop:
     h: float = None               # sample period [tau] (None: unknown)
     h_source: str = None          # 'run_info', 'option' or 'stamps'
     match: str = BY_STEP          # how commands were matched: 'step' or 'time'
-    units: str = 'default'        # where `scale` came from: 'run_info', 'given' or 'default'
+    units: str = UNITS_DEFAULT    # where `scale` came from: 'run_info', 'given' or 'default'
     held: np.ndarray = None       # (N,) by time: the plant held the tether (no tension)
     conflicting: np.ndarray = None   # (N,) the step was recorded again with another state
 
@@ -149,6 +155,15 @@ def given_scale(orbit_rate=None, tether_length=None, mass=None):
                                              ('tether_length', tether_length), ('mass', mass))
              if value is not None}
     return Scale(**given) if given else None
+
+
+def reading_options(sample_period=None, orbit_rate=None, tether_length=None, mass=None,
+                    match=None):
+    """{'scale', 'sample_period', 'match'} as `read_runs` takes them, from the units given
+    one by one (`given_scale`); ValueError, one line, for a bad value."""
+    check_options(sample_period, match)
+    return {'scale': given_scale(orbit_rate, tether_length, mass),
+            'sample_period': sample_period, 'match': match}
 
 
 def state_values(msg):
@@ -293,9 +308,9 @@ def read_runs(path, scale=None, namespace=None, sample_period=None, match=None):
         run_info[decoded.role] = yaml.safe_load(decoded.configuration)
     simulator = run_info.get('simulator') or {}
     if 'scale' in simulator:
-        scale, units = Scale(**simulator['scale']), 'run_info'
+        scale, units = Scale(**simulator['scale']), UNITS_FROM_RUN_INFO
     else:
-        units = 'given' if scale is not None else 'default'
+        units = UNITS_GIVEN if scale is not None else UNITS_DEFAULT
         scale = scale or Scale()
     match = match or (BY_STEP if simulator.get('mode') == 'lockstep' else BY_TIME)
     try:

@@ -76,6 +76,7 @@ def parser():
                    help='torch device (default: cuda if present, else cpu)')
     p.add_argument('--threads', type=cli.integer(1), help='torch CPU threads (per rank)')
     p.add_argument('--quiet', action='store_true', help='no per-epoch lines or progress bars')
+    cli.add_loop_reading(p)
     return p
 
 
@@ -101,7 +102,8 @@ def options(args):
         anchor=args.anchor, epochs=args.epochs, learning_rate=args.learning_rate,
         batch_size=args.batch_size, seed=args.seed, namespace=args.namespace,
         skip_bad=args.skip_bad, device=args.device, progress=not args.quiet,
-        overwrite=args.overwrite)
+        overwrite=args.overwrite, sample_period=args.sample_period, orbit_rate=args.orbit_rate,
+        tether_length=args.tether_length, mass=args.mass, match_commands=args.match_commands)
 
 
 def main(argv=None):

@@ -56,8 +56,9 @@ from tsr_sim import dynamics, wire
 
 from tsr_koopman_ctrl.bag.checks import BagDataError, content_hash, loop_topics, scan
 from tsr_koopman_ctrl.bag.reader import BagReader, COMPLETE
-from tsr_koopman_ctrl.bag.tsr_loop import (check_options, H_FROM_OPTION, H_FROM_RUN_INFO,
-                                           H_FROM_STAMPS, read_runs)
+from tsr_koopman_ctrl.bag.tsr_loop import (check_options, H_FROM_RUN_INFO, H_FROM_STAMPS,
+                                           H_SOURCES, read_runs, UNITS_FROM_RUN_INFO,
+                                           UNITS_SOURCES)
 from tsr_koopman_ctrl.evaluation.figures import in_zone
 from tsr_koopman_ctrl.learning.dataset import concatenate, Dataset
 
@@ -67,8 +68,6 @@ DEFAULT_STEPS = 30
 STAMPS_PERIOD_TOLERANCE = 1e-3
 #: A stamp interval this far (relative) from the sample period is reported as irregular.
 IRREGULAR_INTERVAL = 0.1
-H_SOURCES = {H_FROM_RUN_INFO: "the simulator's RunInfo", H_FROM_OPTION: 'the option given',
-             H_FROM_STAMPS: "the states' stamps"}
 #: Same bound as the sampler's (`SamplingConfig.max_abs_state`): states beyond it are runaways.
 MAX_ABS_STATE = 10.0
 
@@ -308,10 +307,9 @@ def _assumptions(bag, loops, h, scale, sample_period):
     """Warning lines for what a bag without the simulator's record was read with, for sample
     intervals its stamps do not bear out, and for options its own record overrides."""
     loop, lines = loops[0], []
-    units = {'given': 'as given', 'default': "the paper's"}.get(loop.units)
-    if units or loop.h_source != H_FROM_RUN_INFO:
+    if loop.units != UNITS_FROM_RUN_INFO or loop.h_source != H_FROM_RUN_INFO:
         s = loop.scale
-        lines.append(f'{bag}: no simulator RunInfo: units {units or "from RunInfo"} (orbit rate '
+        lines.append(f'{bag}: no simulator RunInfo: units {UNITS_SOURCES[loop.units]} (orbit rate '
                      f'{s.orbit_rate:g} rad/s, tether {s.tether_length:g} m, mass {s.mass:g} '
                      f'kg), sample period {s.tau_to_seconds(h):.6g} s = {h:g} tau from '
                      f'{H_SOURCES[loop.h_source]}, commands matched by {loop.match}')
@@ -322,7 +320,7 @@ def _assumptions(bag, loops, h, scale, sample_period):
         if off:
             lines.append(f'{bag}: {off} of {per_step.size} sample intervals of the states\' '
                          f'stamps differ from h by more than {IRREGULAR_INTERVAL:.0%}')
-    if scale is not None and loop.units == 'run_info' and scale != loop.scale:
+    if scale is not None and loop.units == UNITS_FROM_RUN_INFO and scale != loop.scale:
         lines.append(f'{bag}: the units given are not used: the simulator recorded its own')
     if (sample_period is not None and loop.h_source == H_FROM_RUN_INFO
             and not math.isclose(loop.scale.seconds_to_tau(sample_period), h, rel_tol=1e-9)):
