@@ -81,13 +81,14 @@ UNITS_SOURCES = {UNITS_FROM_RUN_INFO: "the simulator's RunInfo", UNITS_GIVEN: 'a
 
 @dataclass
 class RecordedLoop:
-    """One deployment as recorded. Arrays are per state step, in the paper's variables."""
+    """One deployment as recorded. Arrays are per state step, in the paper's variables; `u`
+    is the tension over the sample from each state (by step: the first command answering it;
+    by time: the one in force; module docstring), NaN where none."""
 
     step: np.ndarray              # (N,) state steps, ascending, each once
     tau: np.ndarray               # (N,)
     x: np.ndarray                 # (N, n) dimensionless states (republished states count once)
-    u: np.ndarray                 # (N,) the tension over the sample from each state, NaN where
-    #                               none (`match`: by step, the first command answering it)
+    u: np.ndarray                 # (N,) dimensionless tension over the sample from each state
     namespace: str = '/'
     sim_status: object = None     # the last tsr_msgs/SimStatus of the run, decoded
     controller_status: object = None   # the last tsr_msgs/ControllerStatus, decoded

@@ -1,6 +1,8 @@
 """Retrain the deep Koopman model on recorded deployments: ``retrain --bags BAG_OR_DIR ...
 --out models/NAME [--init MODEL] [--held-out BAG_OR_DIR ...]``.
 
+A bag needs only tsr/state and tsr/tension_cmd: one without the simulator's RunInfo (hardware's)
+is read with --orbit-rate, --tether-length, --mass, --sample-period and --match-commands.
 Parses the options and calls `learning.retraining.retrain`, whose docstring says what is done;
 prints the errors before and after and where the model went. A bad bag or option is one line
 (one per bad bag) and exit status 2.

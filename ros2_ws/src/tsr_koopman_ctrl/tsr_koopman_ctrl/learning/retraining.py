@@ -6,7 +6,10 @@
     result.errors_before, result.errors_after, result.provenance
 
 Every bag is checked and cut into T-step windows (`learning.recorded`: the applied tension,
-the bag's own units, no window across a gap). `init` fine-tunes that model (its weights and its
+the bag's own units, no window across a gap). A bag without the simulator's RunInfo (hardware's,
+another recorder's: only state and command) is read with the units, sample period and command
+matching of the options (`sample_period`, `orbit_rate`, `tether_length`, `mass`,
+`match_commands`; `bag.read_runs`). `init` fine-tunes that model (its weights and its
 state normalisation; by default 10 epochs at a tenth of its learning rate); with
 `from_scratch` only its config is used; without `init`, the default config (or `config`) from
 scratch. `held_out` bags are whole bags never trained on: the 30-step prediction error on their
