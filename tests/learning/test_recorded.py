@@ -400,6 +400,44 @@ def test_runs_split_at_the_run_number_whatever_the_log_times(tmp_path):
     assert (first.sim_run, second.sim_run) == (0, 1)
 
 
+def test_a_bag_recorded_before_states_carried_their_run_number_is_refused(tmp_path):
+    """TsrState without `run` (the definition before it): refused in one line, by the loop
+    reader (it cannot be split into runs) and by the definition check before training."""
+    text = (MSG_DIR / 'TsrState.msg').read_text()
+    old_text = '\n'.join(line for line in text.splitlines()
+                         if not line.startswith('uint32 run'))
+    assert old_text != text
+    old = get_typestore(Stores.ROS2_JAZZY)
+    old.register(get_types_from_msg(old_text, 'tsr_msgs/msg/TsrState'))
+    x, u, _ = loop_data(40)
+    sep = '=' * 80
+    header, time = (open(definitions._interface_file(t, '.msg')).read()
+                    for t in ('std_msgs/msg/Header', 'builtin_interfaces/msg/Time'))
+    definition = (f'{old_text}\n{sep}\nMSG: builtin_interfaces/Time\n{time}\n{sep}\n'
+                  f'MSG: std_msgs/Header\n{header}')
+    with bag.BagWriter(str(tmp_path / 'b')) as writer:
+        writer.add_topic(topic('/tsr/state', 'tsr_msgs/msg/TsrState', definition, ''))
+        writer.add_topic(topic('/tsr/tension_cmd', 'tsr_msgs/msg/TensionCommand'))
+        for i in range(len(x)):
+            si = SCALE.state_to_si(x[i])
+            state = old.types['tsr_msgs/msg/TsrState'](
+                header=old.types['std_msgs/msg/Header'](
+                    stamp=old.types['builtin_interfaces/msg/Time'](sec=i, nanosec=0),
+                    frame_id=''), step=i, theta=si[0], theta_rate=si[1], length=si[2],
+                length_rate=si[3], has_out_of_plane=False, beta=0.0, beta_rate=0.0)
+            writer.write('/tsr/state', bytes(old.serialize_cdr(state, 'tsr_msgs/msg/TsrState')),
+                         2 * i + 1)
+            writer.write('/tsr/tension_cmd', tension_cdr(u[i], i), 2 * i + 2)
+    with pytest.raises(ValueError) as caught:
+        bag.read_runs(tmp_path / 'b')
+    assert str(caught.value) == (f'{tmp_path / "b"}: its TsrState messages carry no run number '
+                                 '(recorded under an older TsrState definition): it cannot be '
+                                 'split into runs')
+    bad(tmp_path / 'b', "TsrState was recorded with another message definition than the "
+        r"installed one \(tsr_msgs/TsrState declaration 3: 'float64 theta' in the bag, "
+        r"'uint32 run' installed\)")
+
+
 def test_a_bag_starting_at_a_later_run_numbers_its_runs_from_0(tmp_path):
     """A recorder started after two resets: the bag's runs are 0 and 1, the simulator's 2 and
     3 (`sim_run`, and in the description)."""
