@@ -50,15 +50,17 @@ def _header(seconds):
         stamp=time(sec=sec, nanosec=int(round((seconds - sec) * 1e9)) % 10 ** 9), frame_id='')
 
 
-def state_cdr(x, step, scale=SCALE):
+def state_cdr(x, step, scale=SCALE, run=0, seconds=None):
+    """A TsrState of run `run`, stamped `seconds` (default the step's sim time)."""
     si = scale.state_to_si(np.asarray(x, dtype=float))
-    return _cdr('tsr_msgs/msg/TsrState', header=_header(scale.tau_to_seconds(step * H)),
-                step=int(step), run=0, theta=si[0], theta_rate=si[1], length=si[2],
+    seconds = scale.tau_to_seconds(step * H) if seconds is None else seconds
+    return _cdr('tsr_msgs/msg/TsrState', header=_header(seconds),
+                step=int(step), run=int(run), theta=si[0], theta_rate=si[1], length=si[2],
                 length_rate=si[3], has_out_of_plane=False, beta=0.0, beta_rate=0.0)
 
 
-def tension_cdr(u, step, scale=SCALE, type_name='tsr_msgs/msg/TensionCommand'):
-    hold = {'hold': False} if type_name.endswith('TensionCommand') else {}
+def tension_cdr(u, step, scale=SCALE, type_name='tsr_msgs/msg/TensionCommand', hold=False):
+    hold = {'hold': hold} if type_name.endswith('TensionCommand') else {}
     return _cdr(type_name, header=_header(0.0), step=int(step),
                 tension=float(scale.u_to_tension(u)), **hold)
 
@@ -98,7 +100,8 @@ def write_loop(directory, x, u, steps=None, excitation=None, simulator=None, sca
                state_hash=None, runs=()):
     """A lockstep loop as the recorder stores it; u[i] NaN: no command for state i. `after`:
     extra (topic, cdr) messages at the end (republished states, stray commands). `runs`: more
-    (x, u, steps) runs recorded after it, as a simulator reset between them leaves them.
+    (x, u, steps) runs recorded after it, as a simulator reset between them leaves them (run
+    numbers 1, 2, ...).
     `state_definition`, `state_hash`: what the state topic is recorded with (default: the
     installed definition and hash; '' hash: none)."""
     steps = np.arange(len(x)) if steps is None else np.asarray(steps)
@@ -117,9 +120,9 @@ def write_loop(directory, x, u, steps=None, excitation=None, simulator=None, sca
         if run_info:
             write('/tsr/run_info', run_info_cdr('simulator', simulator or simulator_info(scale)))
             write('/tsr/run_info', run_info_cdr('controller', controller_info(scale)))
-        for run_x, run_u, run_steps in [(x, u, steps)] + list(runs):
+        for run, (run_x, run_u, run_steps) in enumerate([(x, u, steps)] + list(runs)):
             for i, step in enumerate(np.arange(len(run_x)) if run_steps is None else run_steps):
-                write('/tsr/state', state_cdr(run_x[i], step, scale))
+                write('/tsr/state', state_cdr(run_x[i], step, scale, run))
                 if not np.isnan(run_u[i]):
                     write('/tsr/tension_cmd', tension_cdr(run_u[i], step, scale))
                     if excitation is not None:
@@ -301,15 +304,15 @@ def write_messages(directory, messages):
     return directory
 
 
-def lockstep(x, u):
-    return [m for i in range(len(x)) for m in (('/tsr/state', state_cdr(x[i], i)),
+def lockstep(x, u, run=0):
+    return [m for i in range(len(x)) for m in (('/tsr/state', state_cdr(x[i], i, run=run)),
                                                ('/tsr/tension_cmd', tension_cdr(u[i], i)))]
 
 
 def test_each_run_of_a_reset_bag_reads_back_as_written(tmp_path):
     x, u, _ = loop_data(40)
     x2, u2, _ = loop_data(35, seed=7)
-    path = write_messages(tmp_path / 'b', lockstep(x, u) + lockstep(x2, u2))
+    path = write_messages(tmp_path / 'b', lockstep(x, u) + lockstep(x2, u2, run=1))
     runs = bag.read_runs(path)
     assert [(loop.run, loop.runs) for loop in runs] == [(0, 2), (1, 2)]
     for loop, (xs, us) in zip(runs, ((x, u), (x2, u2))):
@@ -319,7 +322,7 @@ def test_each_run_of_a_reset_bag_reads_back_as_written(tmp_path):
         np.testing.assert_allclose(loop.tau, np.arange(len(xs)) * H, rtol=0, atol=1e-9)
         assert loop.counts == {'states': len(xs), 'commands': len(xs), 'republished_states': 0,
                                'repeated_commands': 0, 'conflicting_commands': 0,
-                               'orphan_commands': 0}
+                               'orphan_commands': 0, 'conflicting_states': 0}
     np.testing.assert_array_equal(bag.read_loop(path, run=1).x, runs[1].x)
     with pytest.raises(ValueError, match=r'has no run 2: run 0: steps 0-39 \(40 states\), '):
         bag.read_loop(path, run=2)
@@ -330,7 +333,7 @@ def test_no_command_of_one_run_is_matched_to_a_state_of_the_other(tmp_path):
     reaches later) stay in run 0; run 1's steps get run 1's commands."""
     x, u, _ = loop_data(40)
     x2, u2, _ = loop_data(35, seed=7)
-    run1 = lockstep(x2, u2)
+    run1 = lockstep(x2, u2, run=1)
     messages = (lockstep(x, u)[:-1] + run1[:1]                      # reset before command 39
                 + [('/tsr/tension_cmd', tension_cdr(u[39], 39)),     # run 0's late answer
                    ('/tsr/tension_cmd', tension_cdr(9.0, 5))]        # a stray late one
@@ -342,35 +345,108 @@ def test_no_command_of_one_run_is_matched_to_a_state_of_the_other(tmp_path):
 
 
 def test_a_halted_run_stays_halted_after_the_reset_s_status(tmp_path):
-    """The reset publishes the new run's status (step 0) before its first state: it is run 1's,
-    and run 0 keeps the halt it ended with."""
+    """The reset publishes the new run's status (step 0) before its first state: it carries
+    run 1's number and is run 1's; run 0 keeps the halt it ended with."""
     x, u, _ = loop_data(40)
     x2, u2, _ = loop_data(30, seed=7)
 
-    def status(code, step):
+    def status(code, step, run):
         return ('/tsr/sim_status', _cdr('tsr_msgs/msg/SimStatus', header=_header(0.0),
-                                        status=code, message='', step=step, run=0,
+                                        status=code, message='', step=step, run=run,
                                         holding=False, commands_accepted=0, rejected_non_finite=0,
                                         rejected_negative=0, rejected_over_limit=0,
                                         rejected_stale=0, command_timeouts=0))
     first, second = bag.read_runs(write_messages(
-        tmp_path / 'b', lockstep(x, u) + [status(1, 40), status(0, 0)] + lockstep(x2, u2)))
+        tmp_path / 'b', lockstep(x, u) + [status(1, 40, 0), status(0, 0, 1)]
+        + lockstep(x2, u2, run=1)))
     assert first.halted and first.sim_status.step == 40
     assert not second.halted and second.sim_status.step == 0
 
 
-def test_a_reset_to_the_same_start_is_one_run_once_the_states_differ(tmp_path):
-    """Run 1 starts with run 0's first five states: republished states, until its sixth
-    differs; then they are run 1's, not run 0's."""
+def test_a_reset_to_the_same_start_is_a_run_of_its_own_from_its_first_state(tmp_path):
+    """Run 1 starts with run 0's first five states and commands: the run number tells them
+    apart, not the values, so none is taken for a republished state of run 0."""
     x, u, _ = loop_data(40)
     x2, u2, _ = loop_data(30, seed=7)
     x2[:5], u2[:5] = x[:5], u[:5]
     first, second = bag.read_runs(write_messages(tmp_path / 'b', lockstep(x, u)
-                                                 + lockstep(x2, u2)))
+                                                 + lockstep(x2, u2, run=1)))
     assert first.counts['republished_states'] == 0 and first.step.size == 40
     np.testing.assert_allclose(second.x, x2, rtol=0, atol=1e-12)
     np.testing.assert_allclose(second.u, u2, rtol=0, atol=1e-12)
-    assert second.counts['repeated_commands'] == 0
+    assert second.counts['repeated_commands'] == 0 and second.counts['commands'] == 30
+
+
+def test_runs_split_at_the_run_number_whatever_the_log_times(tmp_path):
+    """On sim time a reset sends the recorder's clock back to 0, and two simulators on one
+    domain mix their clocks in its log times: the runs come from the run numbers and the
+    recorded order, so log times that jump back and forth change nothing."""
+    x, u, _ = loop_data(40)
+    x2, u2, _ = loop_data(35, seed=7)
+    messages = ([('/tsr/run_info', run_info_cdr('simulator', simulator_info()))]
+                + lockstep(x, u) + lockstep(x2, u2, run=1))
+    rng = np.random.default_rng(0)
+    with bag.BagWriter(str(tmp_path / 'b')) as writer:
+        for name, type_name in (('/tsr/run_info', 'tsr_msgs/msg/RunInfo'),
+                                ('/tsr/state', 'tsr_msgs/msg/TsrState'),
+                                ('/tsr/tension_cmd', 'tsr_msgs/msg/TensionCommand')):
+            writer.add_topic(topic(name, type_name))
+        for name, data in messages:
+            writer.write(name, data, log_time_ns=int(rng.integers(1, 10 ** 9)))
+    first, second = bag.read_runs(tmp_path / 'b')
+    for loop, (xs, us) in zip((first, second), ((x, u), (x2, u2))):
+        np.testing.assert_allclose(loop.x, xs, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(loop.u, us, rtol=0, atol=1e-12)
+    assert (first.sim_run, second.sim_run) == (0, 1)
+
+
+def test_a_bag_recorded_before_states_carried_their_run_number_is_refused(tmp_path):
+    """TsrState without `run` (the definition before it): refused in one line, by the loop
+    reader (it cannot be split into runs) and by the definition check before training."""
+    text = (MSG_DIR / 'TsrState.msg').read_text()
+    old_text = '\n'.join(line for line in text.splitlines()
+                         if not line.startswith('uint32 run'))
+    assert old_text != text
+    old = get_typestore(Stores.ROS2_JAZZY)
+    old.register(get_types_from_msg(old_text, 'tsr_msgs/msg/TsrState'))
+    x, u, _ = loop_data(40)
+    sep = '=' * 80
+    header, time = (open(definitions._interface_file(t, '.msg')).read()
+                    for t in ('std_msgs/msg/Header', 'builtin_interfaces/msg/Time'))
+    definition = (f'{old_text}\n{sep}\nMSG: builtin_interfaces/Time\n{time}\n{sep}\n'
+                  f'MSG: std_msgs/Header\n{header}')
+    with bag.BagWriter(str(tmp_path / 'b')) as writer:
+        writer.add_topic(topic('/tsr/state', 'tsr_msgs/msg/TsrState', definition, ''))
+        writer.add_topic(topic('/tsr/tension_cmd', 'tsr_msgs/msg/TensionCommand'))
+        for i in range(len(x)):
+            si = SCALE.state_to_si(x[i])
+            state = old.types['tsr_msgs/msg/TsrState'](
+                header=old.types['std_msgs/msg/Header'](
+                    stamp=old.types['builtin_interfaces/msg/Time'](sec=i, nanosec=0),
+                    frame_id=''), step=i, theta=si[0], theta_rate=si[1], length=si[2],
+                length_rate=si[3], has_out_of_plane=False, beta=0.0, beta_rate=0.0)
+            writer.write('/tsr/state', bytes(old.serialize_cdr(state, 'tsr_msgs/msg/TsrState')),
+                         2 * i + 1)
+            writer.write('/tsr/tension_cmd', tension_cdr(u[i], i), 2 * i + 2)
+    with pytest.raises(ValueError) as caught:
+        bag.read_runs(tmp_path / 'b')
+    assert str(caught.value) == (f'{tmp_path / "b"}: its TsrState messages carry no run number '
+                                 '(recorded under an older TsrState definition): it cannot be '
+                                 'split into runs')
+    bad(tmp_path / 'b', "TsrState was recorded with another message definition than the "
+        r"installed one \(tsr_msgs/TsrState declaration 3: 'float64 theta' in the bag, "
+        r"'uint32 run' installed\)")
+
+
+def test_a_bag_starting_at_a_later_run_numbers_its_runs_from_0(tmp_path):
+    """A recorder started after two resets: the bag's runs are 0 and 1, the simulator's 2 and
+    3 (`sim_run`, and in the description)."""
+    x, u, _ = loop_data(40)
+    x2, u2, _ = loop_data(35, seed=7)
+    path = write_messages(tmp_path / 'b', lockstep(x, u, run=2) + lockstep(x2, u2, run=3))
+    first, second = bag.read_runs(path)
+    assert [(r.run, r.sim_run) for r in (first, second)] == [(0, 2), (1, 3)]
+    assert second.describe() == 'run 1 (simulator run 3): steps 0-34 (35 states)'
 
 
 # --------------------------------------------------------------------------- bad bags
@@ -471,16 +547,25 @@ def test_a_reset_splits_the_bag_into_runs_and_windows_come_from_each(tmp_path):
     assert f'{path}: 2 runs of the loop (the simulator was reset: ' in windows.warnings[0]
 
 
-def test_duplicate_steps_with_different_states(tmp_path):
-    """A state step recorded again with other values is a reset: a run of its own, not a state
-    that makes the commands' states unknown."""
-    x, u, _ = loop_data(40)
-    other = x[10] + 0.01
-    path = write_loop(tmp_path / 'b', x, u, after=[('/tsr/state', state_cdr(other, 10))])
+def test_a_step_recorded_with_two_states_is_kept_out_of_the_windows(tmp_path):
+    """A state of the run's number and a step it has, with other values (a second publisher):
+    not a reset, but a step whose true state is unknown. The first is kept in the loop, the
+    step is flagged and counted, and no window uses it."""
+    x, u, _ = loop_data(70)
+    other = x[35] + 0.01
+    path = write_loop(tmp_path / 'b', x, u, after=[('/tsr/state', state_cdr(other, 35))])
     windows = recorded.read_windows(path, steps=30)
+    # Gap-free runs: transitions 0..34 and 36..69, one 30-step window each.
+    assert len(windows.data) == 2
     np.testing.assert_allclose(windows.data.x[0], x[:31], atol=1e-12)
-    assert [r['states'] for r in windows.provenance['gaps']['loop_runs']] == [40, 1]
-    np.testing.assert_allclose(bag.read_loop(path, run=1).x, [other], atol=1e-12)
+    np.testing.assert_allclose(windows.data.x[1], x[36:67], atol=1e-12)
+    gaps = windows.provenance['gaps']
+    assert gaps['conflicting_states'] == 1 and gaps['resets'] == 0
+    assert '1 conflicting states' in windows.warnings[0]
+    loop = bag.read_loop(path)
+    np.testing.assert_allclose(loop.x[35], x[35], atol=1e-12)
+    assert loop.conflicting.tolist() == [s == 35 for s in range(70)]
+    assert loop.counts['conflicting_states'] == 1 and loop.counts['states'] == 71
 
 
 def test_no_complete_window(tmp_path):
@@ -490,13 +575,11 @@ def test_no_complete_window(tmp_path):
         r'gap-free run 29 steps \(1 missing commands\)')
 
 
-def test_units_and_sample_period_must_be_known_and_match(tmp_path):
+def test_the_sample_period_and_state_size_must_match(tmp_path):
     x, u, _ = loop_data(40)
-    bad(write_loop(tmp_path / 'a', x, u, run_info=False), 'no simulator RunInfo')
-    bad(write_loop(tmp_path / 'b', x, u, simulator=simulator_info(mode='timed')),
-        'recorded in timed mode')
-    bad(write_loop(tmp_path / 'c', x, u, simulator=simulator_info(step=0.02)), 'h = 0.02 tau',
-        h=H)
+    message = bad(write_loop(tmp_path / 'c', x, u, simulator=simulator_info(step=0.02)),
+                  'h = 0.02 tau', h=H)
+    assert "from the simulator's RunInfo); the model needs 0.01 tau" in message
     bad(write_loop(tmp_path / 'd', x, u), '4-component states; the model needs 6',
         state_dim=6)
 

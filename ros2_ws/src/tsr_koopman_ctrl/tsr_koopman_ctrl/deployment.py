@@ -14,7 +14,6 @@ recorder read what it publishes, matched at the DDS level). `deploy` is the comm
 """
 
 import dataclasses
-import datetime
 import os
 import tempfile
 import time
@@ -24,6 +23,7 @@ from tsr_sim import dynamics
 from tsr_sim.plant import plant_parameters
 
 from tsr_koopman_ctrl.bag import read_loop
+from tsr_koopman_ctrl.bag.writer import new_bag_name
 from tsr_koopman_ctrl.control.registry import (CONTROLLERS, DEFAULT_LAW, law_class,
                                                NODE_SECTIONS, preset)
 from tsr_koopman_ctrl.control.settings import build
@@ -135,11 +135,12 @@ class Deployment:
         self.mode, self.rate_hz = mode, float(rate_hz)
         self.namespace = checked_namespace(namespace)
         self.domain = domain if domain is not None else random_domain_id()
-        self.name = name or (f'deploy_{law}_'
-                             + datetime.datetime.now(datetime.timezone.utc).strftime(
-                                 '%Y%m%d_%H%M%S'))
+        # Distinct for deployments started in the same second; never an existing directory.
+        self.name = name or new_bag_name(bags, f'deploy_{law}')
         self.bags = bags
         self.bag = os.path.join(bags, self.name)
+        if os.path.exists(self.bag):
+            raise ValueError(f'bag {self.bag} exists: give another name')
         self.logs = logs or tempfile.mkdtemp(prefix=f'{self.name}-logs-')
         self.timeout = float(timeout)
         self.progress = progress

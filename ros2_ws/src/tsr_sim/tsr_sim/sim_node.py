@@ -38,6 +38,7 @@ import sys
 import time
 
 import numpy as np
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock
@@ -60,6 +61,12 @@ LIVE = ('rate_hz', 'command_timeout', 'safe_tension', 'republish_period', 'progr
 #: Republish periods without the first command of a run before the lockstep simulator warns:
 #: a controller's first solve or a late discovery takes a moment, which is no reason to warn.
 IDLE_WARNING_PERIODS = 10
+#: Seconds the simulator, stopping, waits at most for its readers to acknowledge the last
+#: states and status. A recorder that fell behind catches up within one heartbeat period of
+#: the writer (3 s in Fast DDS) once it runs again; a reader that never acknowledges (killed,
+#: still matched until its lease ends) keeps the simulator no longer than this, which stays
+#: under the 10 s a launcher (`launcher.NodeProcess.stop`) grants before it kills.
+ACK_TIMEOUT = 8.0
 
 
 class SimNode(Node):
@@ -426,9 +433,24 @@ class SimNode(Node):
             self.publish_state()
         return response
 
+    def close(self):
+        """Before the node goes (finished, halted or stopped): wait, at most ACK_TIMEOUT s in
+        all, until every reliable reader has acknowledged every state and status published.
+        A writer destroyed with samples unacknowledged takes them with it: a recorder that had
+        not yet received the final state (published just before the exit) never would."""
+        if not self.context.ok():
+            return
+        deadline = time.monotonic() + ACK_TIMEOUT
+        for publisher in (self.state_pub, self.status_pub):
+            left = Duration(seconds=max(deadline - time.monotonic(), 0.0))
+            if not publisher.wait_for_all_acked(left):
+                self.get_logger().warning(
+                    f'{publisher.topic_name}: not every reader acknowledged the last messages '
+                    f'within {ACK_TIMEOUT:g} s; they may lack them')
+
 
 def main(args=None):
-    return run_node(SimNode, args=args)
+    return run_node(SimNode, on_exit=SimNode.close, args=args)
 
 
 if __name__ == '__main__':

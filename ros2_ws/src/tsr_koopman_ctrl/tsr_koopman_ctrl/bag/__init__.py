@@ -3,6 +3,7 @@
     from tsr_koopman_ctrl.bag import BagReader, read_loop
     loop = read_loop('bags/deploy_...')          # states, tensions, statuses, compute times
     runs = read_runs('bags/reset_...')           # one RecordedLoop per run (a reset between)
+    runs = read_runs('bags/hw', scale=Scale(mass=35.0), sample_period=10.0)   # no RunInfo
     print(loop.report.summary())                 # one line per file: complete, truncated, ...
 
 A bag a crash left open: `python -m tsr_koopman_ctrl.commands.bag recover BAG` (commands/bag.py).

@@ -37,8 +37,10 @@ files hold (chunks written by size since then); the files, as read, are the trut
 """
 
 from dataclasses import dataclass
+import datetime
 import inspect
 import os
+import secrets
 import time
 
 from mcap.writer import CompressionType, Writer
@@ -50,6 +52,17 @@ METADATA_FILE = 'metadata.yaml'
 METADATA_VERSION = 9
 ROS_DISTRO = 'jazzy'
 LIBRARY = 'tsr_koopman_ctrl'
+
+
+def new_bag_name(directory, prefix):
+    """'<prefix>_<UTC time to the microsecond>_<6 random hex digits>', drawn again while
+    <directory>/<name> exists: bags started in the same second, by one process or several, get
+    distinct names, and an existing directory is never reused."""
+    while True:
+        now = datetime.datetime.now(datetime.timezone.utc).strftime('%Y%m%d_%H%M%S_%f')
+        name = f'{prefix}_{now}_{secrets.token_hex(3)}'
+        if not os.path.exists(os.path.join(directory, name)):
+            return name
 
 
 @dataclass

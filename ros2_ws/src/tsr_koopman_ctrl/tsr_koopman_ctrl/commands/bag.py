@@ -1,12 +1,18 @@
-"""Bags on the command line: what a bag holds, and a complete bag from one a crash left open.
+"""Bags on the command line: what a bag holds, the runs of its loop, and a complete bag from
+one a crash left open.
 
     python -m tsr_koopman_ctrl.commands.bag info BAG
+    python -m tsr_koopman_ctrl.commands.bag runs BAG [--namespace NS] [--sample-period S] ...
     python -m tsr_koopman_ctrl.commands.bag recover BAG [--out DIR | --in-place]
     (installed as `bag`: ros2 run tsr_koopman_ctrl bag info BAG)
 
 `info` (a bag directory or one .mcap file) reads every file (not only metadata.yaml, which lags
 the files of a killed bag) and prints files with their state, every topic with its type and count
-(0 included), start and duration, and what metadata.yaml says. `recover` (like `ros2 bag
+(0 included), start and duration, and what metadata.yaml says. `runs` reads the loop as
+`retrain` does (`bag.read_runs`; a bag needs only tsr/state and tsr/tension_cmd, and one
+without the simulator's RunInfo is read with the units, sample period and command matching
+given, as `retrain` takes them) and prints its units, sample period and how commands were
+matched, then one line per run of the simulator. `recover` (like `ros2 bag
 reindex` / `mcap recover`) takes a bag directory (its output is a bag, which one file of a split
 bag is not), reads each file as `BagReader` does (every complete chunk, and of a chunk cut short
 its complete zstd blocks; what was still in the writer's memory never reached the file) and
@@ -30,12 +36,15 @@ import tempfile
 
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Schema
+import numpy as np
 import yaml
 
 from tsr_koopman_ctrl.bag.reader import (BagReader, bag_files, CORRUPT, EMPTY, FileReport,
                                          NOT_MCAP, scan_file)
+from tsr_koopman_ctrl.bag.tsr_loop import H_SOURCES, read_runs, UNITS_SOURCES
 from tsr_koopman_ctrl.bag.writer import (bag_metadata, FileStats, finish_mcap, METADATA_FILE,
                                          open_mcap, TopicStats, write_metadata)
+from tsr_koopman_ctrl.commands import cli
 
 
 class Recovered:
@@ -178,6 +187,37 @@ def _check_written(path, count):
         raise RuntimeError(f'{path}: wrote {count} messages, its summary says {said}')
 
 
+def runs(bag, namespace=None, **reading):
+    """Lines describing the loop of `bag` as `read_runs(bag, namespace=..., **reading)` reads
+    it: units, sample period, command matching, then one line per run."""
+    loops = read_runs(bag, namespace=namespace, **reading)
+    first = loops[0]
+    scale = first.scale
+    period = ('unknown (no simulator RunInfo, no --sample-period, and the stamps give none)'
+              if first.h is None else f'h = {first.h:g} tau = '
+              f'{scale.tau_to_seconds(first.h):.6g} s (from {H_SOURCES[first.h_source]})')
+    lines = [f'bag:        {bag}',
+             f'loop:       {first.namespace}',
+             f'units:      orbit rate {scale.orbit_rate:g} rad/s, tether {scale.tether_length:g} '
+             f'm, mass {scale.mass:g} kg ({UNITS_SOURCES[first.units]})',
+             f'sample:     {period}',
+             f'commands:   matched by {first.match}',
+             f'runs:       {len(loops)}']
+    for loop in loops:
+        samples = max(loop.step.size - 1, 0)
+        applied = int(np.isfinite(loop.u[:-1]).sum()) if samples else 0
+        line = (f'  {loop.describe()}: {loop.counts["commands"]} commands, {applied} of '
+                f'{samples} samples with a tension')
+        held = int(loop.held[:-1].sum()) if samples else 0
+        extra = [f'{held} held' if held else '',
+                 f'{loop.counts["conflicting_states"]} conflicting states'
+                 if loop.counts['conflicting_states'] else '',
+                 f'halted at tau {loop.halt_tau:.2f}' if loop.halt_tau is not None else
+                 ('halted' if loop.halted else '')]
+        lines.append(line + ''.join(f', {e}' for e in extra if e))
+    return lines
+
+
 def info(bag):
     """Lines describing `bag` as read (files, topics, counts, time) and its metadata.yaml."""
     reader = BagReader(bag)
@@ -227,6 +267,11 @@ def parser():
     commands = p.add_subparsers(dest='command', required=True)
     info_cmd = commands.add_parser('info', help='files, topics, counts, duration, file states')
     info_cmd.add_argument('bag', help='bag directory or one .mcap file')
+    runs_cmd = commands.add_parser(
+        'runs', help='the runs of the loop, its units, sample period and command matching')
+    runs_cmd.add_argument('bag', help='bag directory or one .mcap file')
+    runs_cmd.add_argument('--namespace', help='the loop to read in a bag holding several')
+    cli.add_loop_reading(runs_cmd)
     rec = commands.add_parser('recover', help='a complete, indexed bag from a killed one')
     rec.add_argument('bag', help='bag directory')
     where = rec.add_mutually_exclusive_group()
@@ -244,6 +289,8 @@ def main(argv=None):
     try:
         if args.command == 'info':
             print('\n'.join(info(args.bag)))
+        elif args.command == 'runs':
+            print('\n'.join(runs(args.bag, args.namespace, **cli.loop_reading(args))))
         else:
             print(recover(args.bag, args.out, args.in_place).line())
     except (ValueError, OSError, RuntimeError) as error:

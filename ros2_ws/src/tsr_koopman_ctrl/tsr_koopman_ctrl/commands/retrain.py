@@ -1,6 +1,8 @@
 """Retrain the deep Koopman model on recorded deployments: ``retrain --bags BAG_OR_DIR ...
 --out models/NAME [--init MODEL] [--held-out BAG_OR_DIR ...]``.
 
+A bag needs only tsr/state and tsr/tension_cmd: one without the simulator's RunInfo (hardware's)
+is read with --orbit-rate, --tether-length, --mass, --sample-period and --match-commands.
 Parses the options and calls `learning.retraining.retrain`, whose docstring says what is done;
 prints the errors before and after and where the model went. A bad bag or option is one line
 (one per bad bag) and exit status 2.
@@ -76,6 +78,7 @@ def parser():
                    help='torch device (default: cuda if present, else cpu)')
     p.add_argument('--threads', type=cli.integer(1), help='torch CPU threads (per rank)')
     p.add_argument('--quiet', action='store_true', help='no per-epoch lines or progress bars')
+    cli.add_loop_reading(p)
     return p
 
 
@@ -101,7 +104,8 @@ def options(args):
         anchor=args.anchor, epochs=args.epochs, learning_rate=args.learning_rate,
         batch_size=args.batch_size, seed=args.seed, namespace=args.namespace,
         skip_bad=args.skip_bad, device=args.device, progress=not args.quiet,
-        overwrite=args.overwrite)
+        overwrite=args.overwrite, sample_period=args.sample_period, orbit_rate=args.orbit_rate,
+        tether_length=args.tether_length, mass=args.mass, match_commands=args.match_commands)
 
 
 def main(argv=None):

@@ -6,35 +6,44 @@
     windows = recorded.read_windows(bags[0])        # BagWindows: data, provenance, warnings
     data = windows.data                              # Dataset of 30-step windows
 
-A window is T + 1 consecutive states and the T tensions APPLIED between them: the first
-command on tsr/tension_cmd answering each state (what a lockstep simulator steps with; it
-already holds the controller's excitation), matched to its state by the `step` both carry,
-never by position. States and tensions are converted to the paper's variables with the units
-scale the simulator recorded (RunInfo, through `bag.read_loop`). Windows never span a gap: a
-missing step, a state without a command, a command the simulator refuses (non-finite,
-negative, over its `max_tension`), or a state that is non-finite, outside the domain or
-beyond |x| <= `max_abs_state` (the sampler's runaway bound) ends a gap-free run; each run is
-cut into windows (one every `stride` steps; by default they do not overlap), and what was
-skipped is counted.
+A window is T + 1 consecutive states and the T tensions APPLIED between them (`bag.tsr_loop`
+matches commands to states): from a lockstep simulator the first command on tsr/tension_cmd
+answering each state, matched by the `step` both carry, never by position; from a timed
+simulator or hardware the command in force over each sample (a zero-order hold of the commands
+as the recorder received them). Either already holds the controller's excitation. States and
+tensions are converted to the paper's variables with the units scale the simulator recorded
+(RunInfo), else the one given (`scale`, default the paper's). Windows never span a gap: a
+missing step, a state without a command, a sample over which the plant held the tether (a
+stop), a command the simulator refuses (non-finite, negative, over its `max_tension`), a state
+that is non-finite, outside the domain or beyond |x| <= `max_abs_state` (the sampler's runaway
+bound), or a step recorded with two different states ends a gap-free run; each run is cut into
+windows (one every `stride` steps; by default they do not overlap), and what was skipped is
+counted.
+
+A bag needs only tsr/state and tsr/tension_cmd (as hardware writes one). Without the
+simulator's RunInfo the units are the ones given, the sample period the one given
+(`sample_period` [s]) or else the median interval of the states' header stamps per step, and
+a warning line says what was assumed (and how many stamp intervals stray from the period).
 
 A bag that cannot give trustworthy windows raises `BagDataError`, one line naming the bag:
 empty; no tsr_msgs/msg/TsrState or TensionCommand messages (wrong types); a TsrState or
 TensionCommand recorded with another definition than the installed one (`bag.checks`: by type
-hash, else by the normalised definition, so a bag of stock `ros2 bag record` is read); no
-simulator RunInfo (units and sample period unknown); timed mode (a command is not tied to a
-step); another sample period or state size than asked; no complete window. A bag holding a
-reset (the step count restarts, `bag.tsr_loop`) is cut into its runs, each command matched to
-its own run's state, and windows come from every run, with a warning line. A crash-truncated
-or damaged file is not an error: the reader keeps what it can recover (`bag.reader`) and a
-warning line says how much; so do lines for skipped gaps and for steps answered by differing
-commands.
+hash, else by the normalised definition, so a bag of stock `ros2 bag record` is read; a bag
+recorded before TsrState carried its run number is one of these); no sample period (no
+RunInfo, no option, stamps that give none); another sample period or state size than asked;
+no complete window. A bag holding resets (the simulator's run number, `TsrState.run`) is cut
+into its runs, each command matched to its own run's state, and windows come from every run,
+with a warning line. A crash-truncated or damaged file is not an error: the reader keeps what
+it can recover (`bag.reader`) and a warning line says how much; so do lines for skipped gaps
+and for steps answered by differing commands.
 
 Provenance per bag (in the Dataset and `BagWindows.provenance`): path, sha256 of its .mcap
 files (concatenated in split order, and per file), sha256 of its recorded messages
 (`messages_sha256`: the same for a recovered or re-chunked copy, whose files differ), message
 counts per topic, windows cut, gap counts (with `resets` and per run of the loop its steps and
-windows, `loop_runs`), the RunInfo (plant, controller, model, excitation)
-and the units scale.
+windows, `loop_runs`), the RunInfo (plant, controller, model, excitation), the units scale and
+where it came from (`units`), the sample period and where it came from (`h_source`), and how
+commands were matched (`match`).
 """
 
 import dataclasses
@@ -47,11 +56,18 @@ from tsr_sim import dynamics, wire
 
 from tsr_koopman_ctrl.bag.checks import BagDataError, content_hash, loop_topics, scan
 from tsr_koopman_ctrl.bag.reader import BagReader, COMPLETE
-from tsr_koopman_ctrl.bag.tsr_loop import read_runs
+from tsr_koopman_ctrl.bag.tsr_loop import (check_options, H_FROM_RUN_INFO, H_FROM_STAMPS,
+                                           H_SOURCES, read_runs, UNITS_FROM_RUN_INFO,
+                                           UNITS_SOURCES)
 from tsr_koopman_ctrl.evaluation.figures import in_zone
 from tsr_koopman_ctrl.learning.dataset import concatenate, Dataset
 
 DEFAULT_STEPS = 30
+#: A sample period read from the states' stamps matches the model's within this (relative):
+#: stamps carry their clock's jitter and rounding, a recorded RunInfo is exact.
+STAMPS_PERIOD_TOLERANCE = 1e-3
+#: A stamp interval this far (relative) from the sample period is reported as irregular.
+IRREGULAR_INTERVAL = 0.1
 #: Same bound as the sampler's (`SamplingConfig.max_abs_state`): states beyond it are runaways.
 MAX_ABS_STATE = 10.0
 
@@ -95,7 +111,7 @@ def validation_blocks(runs, steps, fraction, offset=0):
 
 def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=None,
                  max_abs_state=MAX_ABS_STATE, stride=None, validation_fraction=0.0,
-                 validation_offset=0):
+                 validation_offset=0, scale=None, sample_period=None, match=None):
     """Cut one bag into `steps`-step windows, with every check (module docstring).
 
     A window starts every `stride` steps of a gap-free run (default `steps`: windows that do not
@@ -106,12 +122,16 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     training window touches them, so overlapping windows cannot leak into the epoch choice.
 
     `h` and `state_dim`, when given, are what the windows must have (the model's); a bag with
-    another sample period or state size is refused. Returns BagWindows; raises BagDataError.
+    another sample period or state size is refused. `scale`, `sample_period` [s] and `match`
+    are `bag.read_runs`'s: the units and sample period of a bag without a simulator RunInfo
+    (hardware's), and how its commands are matched to its states. Returns BagWindows; raises
+    BagDataError (ValueError for a bad option).
     """
     bag = os.fspath(path)
     stride = steps if stride is None else int(stride)
     if steps < 1 or stride < 1:
         raise ValueError(f'steps and stride must be >= 1, got {steps}, {stride}')
+    check_options(sample_period, match)
     if not os.path.exists(bag):
         raise BagDataError(bag, 'no such file or directory')
     try:
@@ -124,9 +144,9 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     counts, types, messages_digest = scan(bag, reader)
     namespace = loop_topics(bag, types, namespace)
     try:
-        loops = read_runs(bag, namespace=namespace)
+        loops = read_runs(bag, scale, namespace, sample_period, match)
     except ValueError as error:
-        raise BagDataError(bag, str(error))
+        raise BagDataError(bag, str(error).removeprefix(f'{bag}: '))
     # Nothing silently dropped: every state and command recorded is in exactly one run.
     for topic, key, what in ((wire.STATE_TOPIC, 'states', 'states'),
                              (wire.TENSION_TOPIC, 'commands', 'commands')):
@@ -136,17 +156,19 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
             raise BagDataError(bag, f'read back inconsistently: {read} of {recorded} {what} '
                                'in the runs of the loop')
     loop = loops[0]
-    simulator = loop.run_info.get('simulator')
-    if not simulator:
-        raise BagDataError(bag, f'no simulator RunInfo on {wire.RUN_INFO_TOPIC}: its units '
-                           'scale and sample period are unknown (recorded before RunInfo '
-                           'existed?)')
-    if simulator.get('mode', 'lockstep') != 'lockstep':
-        raise BagDataError(bag, f"recorded in {simulator.get('mode')} mode: the simulator "
-                           'holds the last command there, so a command is not tied to a step')
-    bag_h = float(simulator.get('step', dynamics.PAPER_STEP))
-    if h is not None and not math.isclose(bag_h, h, rel_tol=1e-9):
-        raise BagDataError(bag, f'sample period h = {bag_h:g} tau; the model needs {h:g}')
+    simulator = loop.run_info.get('simulator') or {}
+    bag_h = loop.h
+    if bag_h is None:
+        raise BagDataError(bag, 'sample period unknown: no simulator RunInfo, and the states\' '
+                           'header stamps do not give one (give the sample period)')
+    # A period read from stamps is measured: it matches the model's within their jitter.
+    tolerance = STAMPS_PERIOD_TOLERANCE if loop.h_source == H_FROM_STAMPS else 1e-9
+    if h is not None:
+        if not math.isclose(bag_h, h, rel_tol=tolerance):
+            raise BagDataError(bag, f'sample period h = {bag_h:g} tau '
+                               f'({loop.scale.tau_to_seconds(bag_h):.4g} s, from '
+                               f'{H_SOURCES[loop.h_source]}); the model needs {h:g} tau')
+        bag_h = h
     for each in loops:
         if state_dim is not None and each.x.shape[1] != state_dim:
             raise BagDataError(bag, f'{each.x.shape[1]}-component states; the model needs '
@@ -162,8 +184,9 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
                             'states': int(each.step.size), 'windows': cut['gaps']['windows']}
                            for each, cut in zip(loops, cuts)])
     windows = gaps['windows']
-    skipped = {k: gaps[k] for k in ('missing_steps', 'missing_commands', 'refused_commands',
-                                    'non_finite_states', 'out_of_bounds_states') if gaps[k]}
+    skipped = {k: gaps[k] for k in ('missing_steps', 'missing_commands', 'held_steps',
+                                    'refused_commands', 'non_finite_states',
+                                    'out_of_bounds_states', 'conflicting_states') if gaps[k]}
     if not windows:
         what = ', '.join(f'{v} {k.replace("_", " ")}' for k, v in skipped.items())
         states = f'{gaps["states"]} states'
@@ -179,6 +202,7 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
         if file.state != COMPLETE:
             use = '; its recovered windows are used' if file.messages else '; ignored'
             warnings.append(f'{bag}: {file.line()}{use}')
+    warnings += _assumptions(bag, loops, bag_h, scale, sample_period)
     if len(loops) > 1:
         warnings.append(f'{bag}: {len(loops)} runs of the loop (the simulator was reset: '
                         f'{", ".join(each.describe() for each in loops)}); windows are cut '
@@ -204,7 +228,9 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
         'source': 'bag', 'path': os.path.abspath(bag), 'sha256': digest, 'files': files,
         'messages_sha256': messages_digest, 'messages': dict(sorted(counts.items())),
         'namespace': namespace, 'steps': steps,
-        'windows': windows, 'h': bag_h, 'scale': dataclasses.asdict(loop.scale),
+        'windows': windows, 'h': bag_h, 'h_source': loop.h_source,
+        'sample_period_s': loop.scale.tau_to_seconds(bag_h), 'match': loop.match,
+        'scale': dataclasses.asdict(loop.scale), 'units': loop.units,
         'plant': simulator, 'controller': controller.get('controller'),
         'model': controller.get('model'), 'excitation': controller.get('excitation'),
         'excited_steps': excited, 'halted': any(each.halted for each in loops),
@@ -227,6 +253,9 @@ def _cut_run(loop, steps, stride, max_tension, max_abs_state, validation_fractio
     """The windows of one run of the loop: {'train': (x, u), 'held': (x, u), 'gaps': counts,
     'zone': the in-zone commands}."""
     step, x, u, raw = loop.step, loop.x, loop.u, loop.tension
+    plant_held = loop.held if loop.held is not None else np.zeros(len(step), dtype=bool)
+    conflicting = (loop.conflicting if loop.conflicting is not None
+                   else np.zeros(len(step), dtype=bool))
     commanded = ~np.isnan(raw)
     with np.errstate(invalid='ignore'):
         accepted = np.isfinite(raw) & (raw >= 0.0)
@@ -235,8 +264,9 @@ def _cut_run(loop, steps, stride, max_tension, max_abs_state, validation_fractio
     finite = np.isfinite(x).all(axis=1)
     with np.errstate(invalid='ignore'):
         state_ok = dynamics.in_domain(x) & np.all(np.abs(x) <= max_abs_state, axis=1)
+    trusted = state_ok & ~conflicting       # a step recorded with two states: which is true?
     contiguous = np.diff(step) == 1
-    link = contiguous & state_ok[:-1] & state_ok[1:] & accepted[:-1]
+    link = contiguous & trusted[:-1] & trusted[1:] & accepted[:-1]
     runs = _runs(link)
     starts = [start + k for start, length in runs for k in range(0, length - steps + 1, stride)]
     held = validation_blocks(runs, steps, validation_fraction, validation_offset)
@@ -249,16 +279,18 @@ def _cut_run(loop, steps, stride, max_tension, max_abs_state, validation_fractio
 
     # The commands that held the plant in the 1% zone, each step once: retrain's anchor estimate.
     with np.errstate(invalid='ignore'):
-        holding = link & in_zone(x[:-1])
+        zone_link = link & in_zone(x[:-1])
     missing = np.diff(step)[~contiguous] - 1
     counts = loop.counts
     gaps = {
         'states': int(len(step)), 'gaps': int(len(missing)),
         'missing_steps': int(missing.sum()),
-        'missing_commands': int((~commanded[:-1]).sum()),
+        'missing_commands': int((~commanded[:-1] & ~plant_held[:-1]).sum()),
+        'held_steps': int(plant_held[:-1].sum()),
         'refused_commands': int((commanded[:-1] & ~accepted[:-1]).sum()),
         'non_finite_states': int((~finite).sum()),
         'out_of_bounds_states': int((finite & ~state_ok).sum()),
+        'conflicting_states': int(conflicting.sum()),
         'orphan_commands': counts['orphan_commands'],
         'republished_states': counts['republished_states'],
         'repeated_commands': counts['repeated_commands'],
@@ -268,7 +300,33 @@ def _cut_run(loop, steps, stride, max_tension, max_abs_state, validation_fractio
         'validation_windows': len(held_starts),
     }
     return {'train': cut(starts), 'held': cut(held_starts), 'gaps': gaps,
-            'zone': {'steps': int(holding.sum()), 'sum': float(u[:-1][holding].sum())}}
+            'zone': {'steps': int(zone_link.sum()), 'sum': float(u[:-1][zone_link].sum())}}
+
+
+def _assumptions(bag, loops, h, scale, sample_period):
+    """Warning lines for what a bag without the simulator's record was read with, for sample
+    intervals its stamps do not bear out, and for options its own record overrides."""
+    loop, lines = loops[0], []
+    if loop.units != UNITS_FROM_RUN_INFO or loop.h_source != H_FROM_RUN_INFO:
+        s = loop.scale
+        lines.append(f'{bag}: no simulator RunInfo: units {UNITS_SOURCES[loop.units]} (orbit rate '
+                     f'{s.orbit_rate:g} rad/s, tether {s.tether_length:g} m, mass {s.mass:g} '
+                     f'kg), sample period {s.tau_to_seconds(h):.6g} s = {h:g} tau from '
+                     f'{H_SOURCES[loop.h_source]}, commands matched by {loop.match}')
+    if loop.h_source != H_FROM_RUN_INFO:
+        per_step = np.concatenate([np.diff(each.tau) / np.diff(each.step) for each in loops])
+        with np.errstate(invalid='ignore', divide='ignore'):
+            off = int(np.sum(~(np.abs(per_step / h - 1.0) <= IRREGULAR_INTERVAL)))
+        if off:
+            lines.append(f'{bag}: {off} of {per_step.size} sample intervals of the states\' '
+                         f'stamps differ from h by more than {IRREGULAR_INTERVAL:.0%}')
+    if scale is not None and loop.units == UNITS_FROM_RUN_INFO and scale != loop.scale:
+        lines.append(f'{bag}: the units given are not used: the simulator recorded its own')
+    if (sample_period is not None and loop.h_source == H_FROM_RUN_INFO
+            and not math.isclose(loop.scale.seconds_to_tau(sample_period), h, rel_tol=1e-9)):
+        lines.append(f'{bag}: the sample period given is not used: the simulator recorded its '
+                     f'own ({loop.scale.tau_to_seconds(h):.6g} s)')
+    return lines
 
 
 def read_bags(paths, **options):

@@ -6,7 +6,10 @@
     result.errors_before, result.errors_after, result.provenance
 
 Every bag is checked and cut into T-step windows (`learning.recorded`: the applied tension,
-the bag's own units, no window across a gap). `init` fine-tunes that model (its weights and its
+the bag's own units, no window across a gap). A bag without the simulator's RunInfo (hardware's,
+another recorder's: only state and command) is read with the units, sample period and command
+matching of the options (`sample_period`, `orbit_rate`, `tether_length`, `mass`,
+`match_commands`; `bag.read_runs`). `init` fine-tunes that model (its weights and its
 state normalisation; by default 10 epochs at a tenth of its learning rate); with
 `from_scratch` only its config is used; without `init`, the default config (or `config`) from
 scratch. `held_out` bags are whole bags never trained on: the 30-step prediction error on their
@@ -43,6 +46,7 @@ import time
 import numpy as np
 
 from tsr_koopman_ctrl.bag.checks import BagDataError, find_bags
+from tsr_koopman_ctrl.bag.tsr_loop import reading_options
 from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.learning import distributed, recorded
 from tsr_koopman_ctrl.learning.deep_koopman import DeepKoopman
@@ -91,6 +95,12 @@ class RetrainOptions:
     device: str = None                # torch device (default: cuda if present, else cpu)
     progress: bool = True             # per-epoch lines and progress bars
     overwrite: bool = False           # replace a model already in `out`
+    # How to read a bag without the simulator's RunInfo (hardware's): `bag.read_runs`.
+    sample_period: float = None       # [s] (default: from the states' stamps)
+    orbit_rate: float = None          # [rad/s] the units (default: the paper's)
+    tether_length: float = None       # [m]
+    mass: float = None                # [kg]
+    match_commands: str = None        # 'step' or 'time' (default: from the simulator's mode)
 
 
 @dataclasses.dataclass
@@ -162,6 +172,16 @@ def configure(options, out):
     except (TypeError, ValueError) as error:
         raise UsageError(f'bad config: {error}')
     return config, init, tensors, base, structure
+
+
+def loop_reading(args):
+    """How `read_windows` reads a bag without the simulator's RunInfo, from the options
+    (UsageError, one line, for a bad one)."""
+    try:
+        return reading_options(args.sample_period, args.orbit_rate, args.tether_length,
+                               args.mass, args.match_commands)
+    except ValueError as error:
+        raise UsageError(str(error))
 
 
 def parse_anchor(text):
@@ -340,7 +360,7 @@ def read_bag_set(bags, held_out, args, config, context, say):
         raise UsageError(f'{", ".join(both)}: given to train on and held out; a bag is one or '
                          'the other')
     held_options = {'steps': args.steps, 'namespace': args.namespace, 'h': config.h,
-                    'state_dim': config.state_dim}
+                    'state_dim': config.state_dim, **loop_reading(args)}
     options = dict(held_options, stride=args.stride,
                    validation_fraction=config.validation_fraction)
     by_bags = len(train_paths) >= context.world_size
@@ -436,6 +456,7 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
                          '--test-trajectories >= 0')
     model_file.check_free(out, args.overwrite)
     anchor = parse_anchor(args.anchor)
+    loop_reading(args)                  # checked before any work; read_bag_set applies it
     config, init, init_tensors, init_config, structure = configure(args, out)
     if anchor not in ('data', 'init'):
         with_anchor(config, anchor)     # checked before the bags are read; anchored() applies it

@@ -9,7 +9,6 @@ topic names resolve in the node's namespace, as the loop's publishers' do. SIGIN
 close the bag cleanly; the bag format itself is in `tsr_koopman_ctrl.bag`.
 """
 
-import datetime
 import importlib
 import os
 import sys
@@ -23,7 +22,7 @@ from rosgraph_msgs.msg import Clock
 from tsr_sim.wire import CLOCK_TOPIC, LATCHED_TOPICS, LOOP_TOPIC_TYPES
 
 from tsr_koopman_ctrl.bag import definitions
-from tsr_koopman_ctrl.bag.writer import BagWriter, ReceivedCallback
+from tsr_koopman_ctrl.bag.writer import BagWriter, new_bag_name, ReceivedCallback
 
 DEFAULT_TOPICS = list(LOOP_TOPIC_TYPES)
 DEFAULT_TYPES = list(LOOP_TOPIC_TYPES.values())
@@ -66,8 +65,9 @@ class RecorderNode(Node):
         for type_name in filter(None, types):
             message_class(type_name)      # a bad type stops the node before any bag exists
         directory = declare(self, 'output_dir', 'bags', 'directory the bag is created in')
-        name = declare(self, 'bag_name', '', 'bag directory name (empty: tsr_<UTC time>)')
-        name = name or datetime.datetime.now(datetime.timezone.utc).strftime('tsr_%Y%m%d_%H%M%S')
+        name = declare(self, 'bag_name', '', 'bag directory name (empty: tsr_<UTC time to the '
+                       'microsecond>_<random hex>, a directory not there yet)')
+        name = name or new_bag_name(directory, 'tsr')
         self.writer = BagWriter(
             os.path.join(directory, name),
             max_file_bytes=declare(self, 'max_file_size', 0,
