@@ -109,7 +109,8 @@ def test_a_deactivation_mid_deployment_holds_and_a_shutdown_sends_the_stop_and_e
     held = run_states(watch.states, first=stopped_at)
     assert watch.status.status == 0            # running: no tumble, in the domain
     assert np.abs(held[:, dynamics.THETA]).max() < 1.0
-    assert abs(held[-1, dynamics.LENGTH_RATE]) < 1e-3 and 0.2 < held[-1, 2] + 1.0 < 0.6
+    # stopped (within what a tether that cannot push keeps while the robot librates)
+    assert abs(held[-1, dynamics.LENGTH_RATE]) < 0.01 and 0.2 < held[-1, 2] + 1.0 < 0.6
     assert watch.holds[-1] and watch.commands[-1][0] == wire.NO_STEP
 
     assert change_state(ros, 'activate')
@@ -205,12 +206,14 @@ def test_stray_states_change_nothing_and_are_an_error_while_they_last(ros, start
     for step, x in enumerate(states):
         feed.send(x, step, run=1)
         if step == 5:
-            count = len(feed.statuses)
-            feed.stray.publish(feed.message(np.full(4, np.nan), 6, run=1))
-            feed.stray.publish(feed.message(x, 6, run=1, length=-5000.0))
-            ros.spin_until(lambda: len(feed.statuses) >= count + 2, what='two refusals')
-            assert [s.status for s in feed.statuses[-2:]] == [
-                ControllerStatus.NON_FINITE_STATE, ControllerStatus.REFUSED_STATE]
+            # one at a time: the controller keeps the newest state only
+            for stray, refusal in ((feed.message(np.full(4, np.nan), 6, run=1),
+                                    ControllerStatus.NON_FINITE_STATE),
+                                   (feed.message(x, 6, run=1, length=-5000.0),
+                                    ControllerStatus.REFUSED_STATE)):
+                feed.stray.publish(stray)
+                ros.spin_until(lambda: feed.statuses[-1].status == refusal,
+                               what=f'refusal {refusal}')
     for step in range(len(states)):
         assert feed.answers[(1, step)] == pytest.approx(feed.answers[(0, step)], rel=1e-9)
     last = feed.statuses[-1]

@@ -83,3 +83,23 @@ def test_an_initial_state_outside_the_domain_is_refused_at_construction():
     with pytest.raises(ValueError, match=r'initial_state \[0.0, 0.0, -1.5, 0.5\]: reset state is '
                                          'outside the model domain'):
         Plant(PlantConfig(initial_state=[0.0, 0.0, -1.5, 0.5]))
+
+
+def test_each_reset_starts_the_next_run():
+    """The run number the simulator publishes (TsrState.run): 0 at start, one more per reset,
+    a refused reset changing nothing."""
+    from tsr_sim.plant import config_from_parameters, Plant
+    plant = Plant(config_from_parameters({}))
+    assert plant.run == 0
+    assert plant.reset([0.0, 0.0, -0.5, 0.0]) is None and plant.run == 1
+    assert plant.reset([0.0, 0.0, -2.0, 0.0]) is not None and plant.run == 1
+
+
+def test_a_tether_paid_out_past_twice_its_length_halts_the_run():
+    from tsr_sim import dynamics
+    from tsr_sim.plant import config_from_parameters, Plant, Status
+    plant = Plant(config_from_parameters({'initial_state': [0.0, 0.0, 0.99, 2.0]}))
+    for _ in range(10):
+        plant.advance(0.0)
+    assert plant.status is Status.HALTED_OUT_OF_DOMAIN and 'paid out' in plant.message
+    assert plant.state[dynamics.LENGTH_OFFSET] + 1.0 <= dynamics.PLAUSIBLE_LENGTH

@@ -255,7 +255,11 @@ def read_result(bag, law, x0, planned_steps, namespace=None):
         compute_median_us=float(np.median(compute_us)) if compute_us.size else None,
         compute_p99_us=float(np.percentile(compute_us, 99)) if compute_us.size else None,
         solver_fallbacks=status.solver_fallbacks if status else None,
-        clamped=status.clamped if status else None)
+        clamped=status.clamped if status else None,
+        supervisor_switches=status.supervisor_switches if status else None,
+        fallback_steps=loop.fallback_steps,
+        dropped_states=status.dropped_states if status else None,
+        overruns=status.overruns if status else None)
     return RunResult(bag=bag, loop=loop, figures=figures)
 
 
@@ -293,13 +297,15 @@ def summary_table(rows):
 
     lines = ['| law | x0 | settle tau (1% zone) | final l | theta range [rad] | '
              'l overshoot | max u | integral u dtau | compute median / p99 [us] | '
-             'frontier tau | ratio |', '|---|---|---|---|---|---|---|---|---|---|---|']
+             'fallback flew [steps] (switches) | frontier tau | ratio |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for r in rows:
         final_l = r['final_state'][dynamics.LENGTH_OFFSET] + 1.0
         lines.append(f"| {r['controller']} | {r['x0']} | {settle_cell(r)} | {final_l:.3f} | "
                      f"[{r['theta_min']:.3f}, {r['theta_max']:.3f}] | "
                      f"{r['length_overshoot']:.4f} | {r['tension_max']:.3f} | "
                      f"{r['tension_integral']:.2f} | {fmt(r['compute_median_us'], 0)} / "
-                     f"{fmt(r['compute_p99_us'], 0)} | {fmt(r['frontier_tau'], 1)} | "
+                     f"{fmt(r['compute_p99_us'], 0)} | {r.get('fallback_steps', 0)} "
+                     f"({r.get('supervisor_switches') or 0}) | {fmt(r['frontier_tau'], 1)} | "
                      f"{fmt(r['frontier_ratio'])} |")
     return '\n'.join(lines)

@@ -114,6 +114,17 @@ class RecordedLoop:
     units: str = UNITS_DEFAULT    # where `scale` came from: 'run_info', 'given' or 'default'
     held: np.ndarray = None       # (N,) by time: the plant held the tether (no tension)
     conflicting: np.ndarray = None   # (N,) the step was recorded again with another state
+    #: (N,) under the runtime-assurance supervisor, which law flew each step ('learned',
+    #: 'fallback'; '' without a supervisor or where no command was computed) and why the
+    #: monitor distrusted the learned law then ('' when it did not): ControllerStatus.
+    flying: np.ndarray = None
+    monitor: np.ndarray = None
+
+    @property
+    def fallback_steps(self):
+        """Steps the supervisor's fallback flew."""
+        return int(np.count_nonzero(self.flying == 'fallback')) if self.flying is not None \
+            else 0
 
     @property
     def halted(self):
@@ -339,7 +350,8 @@ def read_runs(path, scale=None, namespace=None, sample_period=None, match=None):
     for k, run in enumerate(runs):
         counts[k].update(states=run.messages, republished_states=run.repeats,
                          conflicting_states=run.conflicting)
-        loops.append(_recorded(run, applied[k], excitation[k], scale, dict(
+        flown = {c.step: (c.flying, c.monitor) for c in controller[k] if c.status in COMPUTED}
+        loops.append(_recorded(run, applied[k], excitation[k], scale, flown, dict(
             namespace=namespace, scale=scale, run_info=run_info, run=k, runs=len(runs),
             sim_run=int(run.number), counts=counts[k], report=reader.report, h=h,
             h_source=h_source, match=match, units=units,
@@ -429,7 +441,7 @@ def _by_time(runs, commands, statuses):
     return applied, counts
 
 
-def _recorded(run, applied, excitation, scale, fields):
+def _recorded(run, applied, excitation, scale, flown, fields):
     steps = np.array(sorted(run.first))
     states = [run.first[s][1] for s in steps.tolist()]
     si = [wire.state_from_msg(msg) for msg in states]
@@ -442,5 +454,8 @@ def _recorded(run, applied, excitation, scale, fields):
     u = np.array([scale.tension_to_u(t) for t in tension])
     added = np.array([scale.tension_to_u(excitation.get(s, 0.0)) for s in steps.tolist()])
     conflicting = np.array([s in run.conflicts for s in steps.tolist()], dtype=bool)
+    flying, monitor = (np.array([flown.get(s, ('', ''))[i] for s in steps.tolist()],
+                                dtype=object) for i in (0, 1))
     return RecordedLoop(step=steps, tau=tau, x=x, u=u, tension=tension, excitation=added,
-                        held=held, conflicting=conflicting, **fields)
+                        held=held, conflicting=conflicting, flying=flying, monitor=monitor,
+                        **fields)

@@ -139,6 +139,8 @@ class Nmpc(Law):
     Settings = NmpcSettings
     #: Exact interval sensitivities (False: the map may approximate them, `MapBase.interval`).
     exact_sensitivities = True
+    #: QP steps of a cold start (`cold_start`).
+    cold_iterations = COLD_ITERATIONS
 
     def __init__(self, settings=None, **kwargs):
         super().__init__(settings, **kwargs)
@@ -298,7 +300,7 @@ class Nmpc(Law):
         if nodes is None or not in_domain(nodes):
             plan, nodes = self.lqr_plan(x)
         solved = False
-        for _ in range(COLD_ITERATIONS):
+        for _ in range(self.cold_iterations):
             end, a, b = self.map.interval(nodes[:-1], self.felt(plan), self.counts,
                                           exact=self.exact_sensitivities)
             predicted, gains = condense(nodes, end, a, b)
@@ -510,6 +512,11 @@ class KoopmanNmpcSettings(NmpcSettings):
     precision: str = setting('float32', "the map's floating-point type: 'float32' about "
                              'halves its time (~1e-7 relative rounding)',
                              choices=('float64', 'float32'))
+    cold_iterations: int = setting(1, "QP steps of a cold start (the first step, a failed "
+                                   "QP) before its first tension is flown: each costs a "
+                                   "rollout of the learned map (~20 ms), and the steps that "
+                                   "follow refine the plan anyway (the physics NMPC, cheap, "
+                                   f"takes {COLD_ITERATIONS})", low=1, high=20)
     cold_guide: str = setting('model', "what a cold start (the first step, a failed QP) "
                               "rolls its trial plans out on: 'model' (the learned map, sample "
                               "by sample: 25-450 ms) or 'physics' (the nominal equations, one "
@@ -529,6 +536,7 @@ class KoopmanNmpc(Nmpc):
         #: The learned model (the offset-free observer predicts with it too).
         self.model = load_model(self.settings.model)
         self.exact_sensitivities = self.settings.sensitivities == 'exact'
+        self.cold_iterations = self.settings.cold_iterations
         return LearnedMap(self.model, dtype=self.settings.precision)
 
     def make_guide(self):

@@ -167,6 +167,7 @@ class ControllerNode(LifecycleNode):
         self.last_state_wall = time.monotonic()
         self.last_state = None       # dimensionless state of the last state taken
         self.refusing = False        # the last state was refused (not finite, no TSR state)
+        self.last_refused_wall = 0.0
         self.sim_status = None       # the simulator's last SimStatus (a halted plant)
         self.compute_seconds = deque(maxlen=COMPUTE_WINDOW)
         self.intervals = deque(maxlen=PERIOD_WINDOW)
@@ -436,7 +437,7 @@ class ControllerNode(LifecycleNode):
         the run's step count is left as it was (a stray message is no step of it)."""
         name = 'non_finite_states' if outcome is Outcome.NON_FINITE_STATE else 'refused_states'
         self.counts[name] += 1
-        self.refusing = True
+        self.refusing, self.last_refused_wall = True, time.monotonic()
         self.get_logger().warning(
             f"{'non-finite state' if name == 'non_finite_states' else 'no TSR state'} at "
             f'step {msg.step} ({x.tolist()}, dimensionless): refused, no command',
@@ -493,8 +494,8 @@ class ControllerNode(LifecycleNode):
 
     def diagnose(self):
         """Health (docs/nodes.md): ERROR when configure failed, the law gave a non-finite
-        tension, a state was refused since the last report or the last one was (ERROR while
-        the fault lasts), the plant is tumbling (|theta| past the tumbling swing) or the
+        tension, a state was refused since the last report or refused states keep coming
+        (ERROR while the fault lasts; none for state_timeout: the stale-input warning), the plant is tumbling (|theta| past the tumbling swing) or the
         simulator halted the run; WARN when not active, while the supervisor's fallback flies,
         when the law's solver fell back, states were dropped or computes overran since the
         last report, or no state came for state_timeout; OK otherwise."""
@@ -526,7 +527,9 @@ class ControllerNode(LifecycleNode):
             return Health.ERROR, f'configure failed: {self.failure}', values
         if 'non_finite' in grown:
             return Health.ERROR, 'the law gave a non-finite tension', values
-        if self.refusing or 'refused' in grown:
+        refusing = (self.refusing
+                    and time.monotonic() - self.last_refused_wall < self.state_timeout)
+        if refusing or 'refused' in grown:
             return Health.ERROR, 'states refused (not finite, or no TSR state): no command', \
                 values
         if status is not None and status.status == SimStatus.HALTED_OUT_OF_DOMAIN:
