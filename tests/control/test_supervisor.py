@@ -170,3 +170,27 @@ def test_the_bare_learned_nmpc_loses_the_paper_s_start_at_0_4():
     states, _ = closed_loop(make_controller('koopman_nmpc', theta_max=0.4,
                                             supervisor='none'), COMPARISON_STARTS[0], 2000)
     assert np.abs(states[:, dynamics.THETA]).max() > 0.405
+
+
+def test_a_state_outside_the_model_s_training_envelope_is_distrusted():
+    class Model:
+        envelope = (np.full(4, -1.0), np.full(4, 1.0))
+    learned = Scripted(2.0)
+    learned.model = Model()
+    supervisor = Supervisor(learned, Scripted(1.0), envelope_margin=0.1, takeback_steps=1000)
+    assert supervisor.compute(np.array([0.0, 1.15, -0.5, 0.2])) == 2.0    # within 10% of 2
+    assert supervisor.compute(np.array([0.0, 1.25, -0.5, 0.2])) == 1.0
+    assert supervisor.monitor == 'envelope'
+
+
+def test_the_shipped_models_carry_an_envelope_that_holds_every_start():
+    """What `train` writes into a model file (the box of its training states); the shipped
+    ones got it from their recorded provenance (lab/model_envelopes.py)."""
+    from conftest import ROOT
+
+    from tsr_koopman_ctrl.model import LiftedModel
+    for directory in sorted((ROOT / 'models').glob('*/model.json')):
+        low, high = LiftedModel.load(str(directory.parent)).envelope
+        starts = np.array(COMPARISON_STARTS + HELD_OUT_STARTS)
+        width = high - low
+        assert np.all(starts >= low - 0.1 * width) and np.all(starts <= high + 0.1 * width)

@@ -183,7 +183,7 @@ def main(argv=None):
     if args.init:
         extra['init'] = args.init
     metadata = save_model(args.out, model, config, trainer, data, test_data, seconds, command,
-                          extra)
+                          extra, envelope=datasets.envelope(data))
     metrics = metadata['metrics']
     print(f"saved {args.out}: best epoch {trainer.best['epoch']}, test 30-step summed MSE "
           f"{metrics['test']['summed_mse']:.4g}, controllability rank "

@@ -512,11 +512,10 @@ class KoopmanNmpcSettings(NmpcSettings):
     precision: str = setting('float32', "the map's floating-point type: 'float32' about "
                              'halves its time (~1e-7 relative rounding)',
                              choices=('float64', 'float32'))
-    cold_iterations: int = setting(1, "QP steps of a cold start (the first step, a failed "
-                                   "QP) before its first tension is flown: each costs a "
-                                   "rollout of the learned map (~20 ms), and the steps that "
-                                   "follow refine the plan anyway (the physics NMPC, cheap, "
-                                   f"takes {COLD_ITERATIONS})", low=1, high=20)
+    cold_iterations: int = setting(COLD_ITERATIONS, "QP steps of a cold start (the first "
+                                   "step, a failed QP) before its first tension is flown: "
+                                   "each costs a rollout of the learned map (~20 ms); the steps "
+                                   "that follow refine the plan anyway", low=1, high=20)
     cold_guide: str = setting('model', "what a cold start (the first step, a failed QP) "
                               "rolls its trial plans out on: 'model' (the learned map, sample "
                               "by sample: 25-450 ms) or 'physics' (the nominal equations, one "

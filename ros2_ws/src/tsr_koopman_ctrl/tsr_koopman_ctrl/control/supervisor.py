@@ -61,7 +61,7 @@ class SupervisorSettings(LawSettings):
     prediction_threshold: float = setting(0.2, "largest miss of the model's one-step "
                                           'prediction, any component (dimensionless)',
                                           low=0.0, high=1e6)
-    takeback_steps: int = setting(100, 'steps in a row the learned law must be trusted before '
+    takeback_steps: int = setting(20, 'steps in a row the learned law must be trusted before '
                                   'it takes back from the fallback', low=1, high=10 ** 7)
     shadow: str = setting('armed', "when the fallback plans beside the learned law, so that it "
                           "takes over warm: 'armed' (for arm_steps steps after each fault of "
@@ -111,6 +111,10 @@ class Supervisor(Law):
     def compute(self, x):
         x = planar_state(x)
         s = self.supervisor_settings
+        # The fallback plans whenever it flies or may soon (armed); otherwise it only sees the
+        # state, so that its observer keeps up.
+        fallback = (self.run(self.fallback, x) if self.flying == FALLBACK or
+                    s.shadow == 'always' or (s.shadow == 'armed' and self.armed) else None)
         learned = None
         if self.resting:
             self.resting -= 1
@@ -129,12 +133,10 @@ class Supervisor(Law):
                 self.trusted_steps += 1
                 if self.flying == FALLBACK and self.trusted_steps >= s.takeback_steps:
                     self.switch(LEARNED)
-        # The fallback plans whenever it flies or may soon (armed); otherwise it only sees the
-        # state, so that its observer keeps up.
-        if self.flying == FALLBACK or s.shadow == 'always' or (
-                s.shadow == 'armed' and self.armed):
-            fallback = self.run(self.fallback, x)
-        else:
+        if fallback is None and (self.flying == FALLBACK or (s.shadow == 'armed'
+                                                             and self.armed)):
+            fallback = self.run(self.fallback, x)       # armed, or taking over, this step
+        elif fallback is None:
             self.fallback.observe(x)
         self.armed = max(self.armed - 1, 0)
         tension, fell_back = learned if self.flying == LEARNED else fallback

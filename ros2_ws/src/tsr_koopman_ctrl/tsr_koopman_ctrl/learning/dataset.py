@@ -163,6 +163,37 @@ def from_loop(loop, steps=30, h=dynamics.PAPER_STEP, source='bag'):
     return Dataset(xs, us, h, provenance)
 
 
+#: The envelope of a model's training data (`envelope`) leaves out this share of the states at
+#: each end of each component: a few runaways near the sampler's bound are not where the model
+#: was trained.
+ENVELOPE_QUANTILE = 1e-3
+
+
+def envelope(data, quantile=ENVELOPE_QUANTILE):
+    """The box of the states a model is trained on (every state of every window), per
+    component between the `quantile` and 1 - `quantile` quantiles: what the model file keeps
+    (`envelope`) and the runtime-assurance supervisor checks the measured state against."""
+    states = np.asarray(data.x, dtype=float).reshape(-1, data.x.shape[-1])
+    low, high = np.quantile(states, [quantile, 1.0 - quantile], axis=0)
+    return {'low': low.tolist(), 'high': high.tolist(), 'quantile': quantile,
+            'states': int(len(states))}
+
+
+def resample(provenance):
+    """The sampled data a model's provenance records (its `sample` settings, in order): the
+    same trajectories again (the sampler is seeded). ValueError for data of another source
+    (bags), which cannot be drawn again."""
+    fields = {f.name for f in dataclasses.fields(SamplingConfig)}
+    parts = []
+    for record in provenance:
+        if record.get('source') != 'sampled':
+            raise ValueError(f"data from {record.get('source')!r} cannot be drawn again")
+        config = SamplingConfig(**{k: tuple(v) if isinstance(v, list) else v
+                                   for k, v in record.items() if k in fields})
+        parts.append(sample(config)[0])
+    return concatenate(parts)
+
+
 def concatenate(datasets):
     """Join datasets with the same h, horizon and state size; provenance lists are joined."""
     datasets = list(datasets)

@@ -238,9 +238,11 @@ def versions():
 
 
 def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, command,
-               extra=None):
+               extra=None, envelope=None):
     """Write the model with its test metrics, controllability rank and provenance; `extra`:
-    more metadata (a dict merged in). `train_data` needs only `provenance` and len()."""
+    more metadata (a dict merged in); `envelope`: the box of its training states
+    (`dataset.envelope`), which the supervisor checks states against. `train_data` needs only
+    `provenance` and len()."""
     test = evaluate(model, test_data, trainer.device)
     # A structured model stores the A its parameters build, in the file's usual layout.
     tensors = getattr(model, 'export_tensors', model.to_numpy)()
@@ -254,6 +256,8 @@ def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, 
                  'train_trajectories': len(train_data), 'test_trajectories': len(test_data)},
         'training_seconds': round(seconds, 1), 'device': str(trainer.device),
         'command': command, 'versions': versions(), **(extra or {})}
+    if envelope is not None:
+        metadata['envelope'] = envelope
     if trainer.structure is not None:   # how A was built, so a fine-tune can build it again
         metadata['structure'] = {**trainer.structure.to_dict(), 'real_modes': model.real_modes}
     model_file.save(out_dir, tensors, config, metadata)

@@ -388,6 +388,7 @@ class ControllerNode(LifecycleNode):
         self.refusing = False
         key = (msg.run, msg.step, si.tobytes())
         if self.last_answer is not None and self.last_answer[0] == key:
+            self.last_state_wall = now
             self.counts['resent'] += 1
             self.pub.publish(self.last_answer[1])
             self.get_logger().info(f'state of step {msg.step} repeated: its command resent',
@@ -495,7 +496,8 @@ class ControllerNode(LifecycleNode):
     def diagnose(self):
         """Health (docs/nodes.md): ERROR when configure failed, the law gave a non-finite
         tension, a state was refused since the last report or refused states keep coming
-        (ERROR while the fault lasts; none for state_timeout: the stale-input warning), the plant is tumbling (|theta| past the tumbling swing) or the
+        (ERROR while the fault lasts; not for state_timeout: that is the stale-input
+        warning), the plant is tumbling (|theta| past the tumbling swing) or the
         simulator halted the run; WARN when not active, while the supervisor's fallback flies,
         when the law's solver fell back, states were dropped or computes overran since the
         last report, or no state came for state_timeout; OK otherwise."""
