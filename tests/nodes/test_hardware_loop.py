@@ -14,12 +14,23 @@ from tsr_sim.units import Scale
 
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, PAPER_START
 from tsr_koopman_ctrl.evaluation.figures import settle_index
-from tsr_koopman_ctrl.evaluation.frontier import frontier_tau
+from tsr_koopman_ctrl.evaluation.frontier import frontier_tau, table_entry
 
 pytestmark = pytest.mark.ros
 
 SCALE = Scale()
 ERROR, WARN = b'\x02', b'\x01'
+
+
+def realtime_granted():
+    """Whether this host grants SCHED_FIFO (the nodes' `thread_priority`) to its processes."""
+    import os
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except (OSError, AttributeError):
+        return False
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    return True
 
 
 @pytest.fixture
@@ -51,6 +62,17 @@ def reset(ros, x):
     assert ros.call(ResetSim, '/tsr/reset', request).success
 
 
+def loop_summary(watch):
+    """Where the loop stood, for a failure message."""
+    last = max(watch.states) if watch.states else None
+    status = watch.status
+    return (f'run {watch.run}, last step {last}, state '
+            f'{None if last is None else np.round(watch.states[last], 3)}, simulator status '
+            f'{None if status is None else (status.status, status.run, status.holding)}, '
+            f'{len(watch.commands)} commands, controller health '
+            f"{(health_of(watch, '/tsr_controller') or ('none',))[:2]}")
+
+
 def run_states(run, first=0, last=None):
     """The run's states (dict step -> x) from step `first` to `last`, in step order."""
     return np.array([run[step] for step in sorted(run)
@@ -64,7 +86,10 @@ def test_the_timed_loop_at_100_hz_settles_from_every_start_and_after_each_reset(
     paper's start, then after a `tsr/reset` to each other comparison start and back to the
     paper's: every run settles, within 1.5x the minimum time at its swing (lockstep: 1.03 to
     1.05x; under this load states are dropped and the supervisor may hand a run to the
-    fallback for a while)."""
+    fallback for a while). The nodes run at their default real-time priority, as a loop on
+    hardware would; a host that refuses it cannot keep a 10 ms period beside busy processes."""
+    if not realtime_granted():
+        pytest.skip('this host refuses real-time scheduling (thread_priority)')
     steps = 700
     start_node('tsr_sim', 'sim_node', 'tsr_sim',
                {'mode': 'timed', 'rate_hz': 100.0, 'progress_every': 0,
@@ -75,15 +100,24 @@ def test_the_timed_loop_at_100_hz_settles_from_every_start_and_after_each_reset(
     for run, start in enumerate(starts):
         if run:
             reset(ros, start)
-        ros.spin_until(lambda: watch.run == run and watch.states
-                       and max(watch.states) >= steps, timeout=60.0,
-                       what=f'run {run} from {start} to reach step {steps}')
+        try:
+            ros.spin_until(lambda: watch.run == run and watch.states
+                           and max(watch.states) >= steps, timeout=60.0,
+                           what=f'run {run} from {start} to reach step {steps}')
+        except TimeoutError as error:
+            raise AssertionError(f'{error}; {loop_summary(watch)}') from None
         assert watch.status.status == 0 and watch.status.run == run
         states = run_states(watch.states, last=steps)
         settle = settle_index(states)
-        assert settle is not None, f'run {run} from {start} did not settle'
+        assert settle is not None, (f'run {run} from {start} did not settle: swing '
+                                    f'{np.abs(states[:, 0]).max():.3f}, {len(states)} states '
+                                    f'seen, end {np.round(states[-1], 4)}; '
+                                    f'{loop_summary(watch)}')
         swing = np.abs(states[:, dynamics.THETA]).max()
-        assert settle * dynamics.PAPER_STEP <= 1.5 * frontier_tau(start, swing)
+        # (a state the test's own reader missed under load may hide the run's largest swing;
+        # below the least swing known from the start, the frontier there is the bound)
+        least = table_entry(start)['least_swing']['swing']
+        assert settle * dynamics.PAPER_STEP <= 1.5 * frontier_tau(start, max(swing, least))
     level, _, values = health_of(watch, '/tsr_controller')
     assert int(values['runs']) == len(starts) - 1 and float(values['compute_median_ms']) < 10
 

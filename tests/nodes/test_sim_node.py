@@ -165,7 +165,8 @@ def test_the_node_declares_the_parameters_of_the_tables_and_nothing_else(ros, st
     ros.spin_until(future.done, what='the parameter list')
     declared = set(future.result().result.names)
     assert declared == {*PLANT_PARAMETERS, *SCALE_PARAMETERS, *SIMULATOR_PARAMETERS,
-                        'threads', 'use_sim_time', 'start_type_description_service'}
+                        'threads', 'thread_priority', 'use_sim_time',
+                        'start_type_description_service'}
 
 
 def test_a_given_name_close_to_a_declared_one_is_warned_of(start_node, tmp_path):

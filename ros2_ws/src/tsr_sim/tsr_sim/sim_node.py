@@ -49,8 +49,8 @@ from tsr_sim import dynamics
 from tsr_sim.plant import (config_from_parameters, Plant, PLANT_PARAMETERS, Rejection,
                            SIMULATOR_PARAMETERS, Status)
 from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, Health, LATCHED_QOS,
-                            LOOP_PUBLISHER_QOS, MatchedReaders, MatchedWriters, Parameters,
-                            run_node, steady_timer)
+                            LOOP_PRIORITY, LOOP_PUBLISHER_QOS, MatchedReaders, MatchedWriters,
+                            Parameters, run_node, steady_timer)
 from tsr_sim.wire import (CLOCK_TOPIC, NO_STEP, RESET_SERVICE, RUN_INFO_TOPIC, run_info_msg,
                           scale_dict, SIM_STATUS_TOPIC, STATE_TOPIC, state_to_msg,
                           TENSION_TOPIC)
@@ -450,7 +450,7 @@ class SimNode(Node):
 
 
 def main(args=None):
-    return run_node(SimNode, on_exit=SimNode.close, args=args)
+    return run_node(SimNode, on_exit=SimNode.close, args=args, priority=LOOP_PRIORITY)
 
 
 if __name__ == '__main__':

@@ -62,8 +62,8 @@ from tsr_msgs.msg import ControllerStatus, Excitation, RunInfo, TensionCommand, 
 from tsr_sim import dynamics
 from tsr_msgs.msg import SimStatus
 from tsr_sim.ros_io import (declare, declare_scale, given_parameter_names, Health, LATCHED_QOS,
-                            LOOP_PUBLISHER_QOS, MatchedReaders, NEWEST_QOS, Parameters,
-                            run_node, steady_timer)
+                            LOOP_PRIORITY, LOOP_PUBLISHER_QOS, MatchedReaders, NEWEST_QOS,
+                            Parameters, run_node, steady_timer)
 from tsr_sim.plant import SCALE_PARAMETERS
 from tsr_sim.units import Scale
 from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, NO_STEP, RUN_INFO_TOPIC,
@@ -569,7 +569,7 @@ class ControllerNode(LifecycleNode):
 
 def main(args=None):
     return run_node(ControllerNode, on_exit=ControllerNode.report, args=args,
-                    start=ControllerNode.start)
+                    start=ControllerNode.start, priority=LOOP_PRIORITY)
 
 
 if __name__ == '__main__':
