@@ -13,7 +13,7 @@ import json
 import os
 import sys
 
-from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl import arguments
 from tsr_koopman_ctrl.control.registry import CONTROLLERS, DEFAULT_LAW
 from tsr_koopman_ctrl.deployment import Deployment, DeploymentError, summary_table
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
@@ -25,7 +25,7 @@ def parser():
                    choices=sorted(CONTROLLERS),
                    help=f'the laws, each deployed with its defaults (default {DEFAULT_LAW} '
                    'and the paper\'s koopman_lqr)')
-    p.add_argument('--steps', type=cli.STEPS, default=2000)
+    p.add_argument('--steps', type=arguments.STEPS, default=2000)
     p.add_argument('--out', default='lab/results/main_job')
     return p
 

@@ -25,7 +25,7 @@ from tsr_sim.plant import plant_parameters
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.bag.writer import new_bag_name
 from tsr_koopman_ctrl.control.registry import (CONTROLLERS, DEFAULT_LAW, law_class,
-                                               NODE_SECTIONS, preset)
+                                               NODE_SECTIONS, preset, settings_class)
 from tsr_koopman_ctrl.control.settings import build
 from tsr_koopman_ctrl.evaluation import PAPER_START, run_figures
 from tsr_koopman_ctrl.launcher import NodeProcess, random_domain_id
@@ -58,11 +58,6 @@ class RunResult:
     @property
     def halted(self):
         return bool(self.figures['halted'])
-
-
-def settings_class(section):
-    """The settings class of a settings section: a law's, the observer's or the excitation's."""
-    return NODE_SECTIONS.get(section) or law_class(section).Settings
 
 
 def merged_settings(law, settings=None, model=None, preset_name=None):
