@@ -49,7 +49,8 @@ def deployments(args, label, model, starts, plant, excite, seed):
             settings['excitation'] = dict(EXCITATION, seed=seed + index)
         name = f'{label}_x{index}'
         run = Deployment(args.law, settings, plant=plant, x0=x0, steps=args.steps, bags=bags,
-                         name=name, logs=os.path.join(args.workdir, 'runs', name)).run()
+                         name=name, logs=os.path.join(args.workdir, 'runs', name),
+                         namespace=args.namespace).run()
         paths.append(run.bag)
     return paths
 
@@ -182,6 +183,8 @@ def parser():
     p.add_argument('--sampled-ratio', type=arguments.number(0), default=0.0,
                    help='sampled Table-1 trajectories per recorded window in each retraining')
     p.add_argument('--out', default=os.path.join('out', 'loop'), type=arguments.output_dir)
+    p.add_argument('--namespace', help="the nodes' ROS namespace (default: the root; every "
+                   'deployment has a DDS domain of its own)')
     return p
 
 

@@ -27,6 +27,8 @@ def parser():
                    'and the paper\'s koopman_lqr)')
     p.add_argument('--steps', type=arguments.STEPS, default=2000)
     p.add_argument('--out', default='lab/results/main_job')
+    p.add_argument('--namespace', help="the nodes' ROS namespace (default: the root; every "
+                   'deployment has a DDS domain of its own)')
     return p
 
 
@@ -37,7 +39,8 @@ def main(argv=None):
     try:
         for law in args.law:
             run = Deployment(law, steps=args.steps, bags=os.path.join(args.out, 'bags'),
-                             logs=os.path.join(args.out, 'logs', law), progress=False).run()
+                             logs=os.path.join(args.out, 'logs', law), progress=False,
+                             namespace=args.namespace).run()
             rows.append(run.figures)
             curves[law] = (run.loop.tau, run.loop.x, run.loop.u[:-1])
             print(f'{law}: settle tau {run.figures["settle_tau"]}, ratio '

@@ -61,8 +61,9 @@ def parse_args(argv):
                         help='directory the bag is written in')
     parser.add_argument('--namespace', default=None, help='ROS namespace of the three nodes')
     parser.add_argument('--domain', type=cli.DOMAIN_ID, default=None,
-                        help="ROS_DOMAIN_ID (default: a random one in 1..101, not the "
-                             "environment's ROS_DOMAIN_ID)")
+                        help="ROS_DOMAIN_ID (default: one of 1..101 that no other process "
+                             "on this host uses and not the environment's ROS_DOMAIN_ID, "
+                             'reserved for the run)')
     parser.add_argument('--timeout', type=cli.number(above=0), default=900.0,
                         help='wall seconds before the run is abandoned')
     args = parser.parse_args(argv)
