@@ -28,7 +28,7 @@ from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller
 from tsr_koopman_ctrl.control.registry import law_class, preset
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments, plot_ratios
-from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl import arguments
 from lab.report import write_results
 
 
@@ -135,11 +135,11 @@ def parser():
                    help="settings presets: 'tuned' (the laws' defaults), or a parameter file "
                    "by path or by name under config/ ('untuned', 'tuned_settle', "
                    "'tuned_cross'); a file shows the laws it names")
-    p.add_argument('--steps', type=cli.STEPS, default=2000)
-    p.add_argument('--theta-max', type=cli.number(above=0), metavar='RAD',
+    p.add_argument('--steps', type=arguments.STEPS, default=2000)
+    p.add_argument('--theta-max', type=arguments.number(above=0), metavar='RAD',
                    help='a swing bound for the laws that take one (koopman_mpc: soft; '
                    'physics_nmpc, koopman_nmpc: exact penalty); the others are left out')
-    p.add_argument('--out', default=os.path.join('out', 'comparison'), type=cli.output_dir)
+    p.add_argument('--out', default=os.path.join('out', 'comparison'), type=arguments.output_dir)
     return p
 
 

@@ -23,7 +23,7 @@ import numpy as np
 from tsr_sim.plant import plant_parameters
 
 from tsr_koopman_ctrl.bag import read_loop
-from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl import arguments
 from tsr_koopman_ctrl.deployment import Deployment, DeploymentError, Interrupted
 from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, HELD_OUT_STARTS,
                                          run_figures)
@@ -49,7 +49,8 @@ def deployments(args, label, model, starts, plant, excite, seed):
             settings['excitation'] = dict(EXCITATION, seed=seed + index)
         name = f'{label}_x{index}'
         run = Deployment(args.law, settings, plant=plant, x0=x0, steps=args.steps, bags=bags,
-                         name=name, logs=os.path.join(args.workdir, 'runs', name)).run()
+                         name=name, logs=os.path.join(args.workdir, 'runs', name),
+                         namespace=args.namespace).run()
         paths.append(run.bag)
     return paths
 
@@ -173,15 +174,17 @@ def plot_rounds(rounds, nominal, path, plant):
 def parser():
     p = argparse.ArgumentParser(prog='loop', description=__doc__.split('\n\n')[0])
     p.add_argument('--plant', required=True, help='plant variant (tsr_sim config/plants)')
-    p.add_argument('--rounds', type=cli.integer(1), default=2)
+    p.add_argument('--rounds', type=arguments.integer(1), default=2)
     p.add_argument('--law', default='koopman_mpc', choices=['koopman_mpc', 'koopman_lqr'])
     p.add_argument('--model', default=DEFAULT_MODEL, help='the start model')
-    p.add_argument('--steps', type=cli.STEPS, default=2000)
-    p.add_argument('--epochs', type=cli.integer(1), default=10,
+    p.add_argument('--steps', type=arguments.STEPS, default=2000)
+    p.add_argument('--epochs', type=arguments.integer(1), default=10,
                    help='fine-tuning epochs per round')
-    p.add_argument('--sampled-ratio', type=cli.number(0), default=0.0,
+    p.add_argument('--sampled-ratio', type=arguments.number(0), default=0.0,
                    help='sampled Table-1 trajectories per recorded window in each retraining')
-    p.add_argument('--out', default=os.path.join('out', 'loop'), type=cli.output_dir)
+    p.add_argument('--out', default=os.path.join('out', 'loop'), type=arguments.output_dir)
+    p.add_argument('--namespace', help="the nodes' ROS namespace (default: the root; every "
+                   'deployment has a DDS domain of its own)')
     return p
 
 
@@ -208,7 +211,7 @@ def main(argv=None):
     except Interrupted as stopped:
         print(f'loop: {stopped}; stopped, the finished rounds stay in {args.workdir}',
               file=sys.stderr)
-        return cli.INTERRUPTED_STATUS
+        return arguments.INTERRUPTED_STATUS
     except (DeploymentError, RuntimeError, ValueError) as error:
         print(f'loop: {error}', file=sys.stderr)
         return 1

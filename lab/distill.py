@@ -47,7 +47,7 @@ import time
 import numpy as np
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl import arguments
 from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.learning import errors
 
@@ -240,7 +240,7 @@ def train(args, log=print):
 
     import torch
 
-    from tsr_koopman_ctrl.commands.train import load_data, test_set
+    from tsr_koopman_ctrl.learning.data import test_set, training_data
     from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
     from tsr_koopman_ctrl.model import model_file
     from tsr_koopman_ctrl.model.lifted import LiftedModel
@@ -252,11 +252,9 @@ def train(args, log=print):
                                  seed=args.seed)
     teacher = (LiftedModel.load(args.teacher).astype(np.float32) if args.targets == 'teacher'
                else None)     # (float32: as koopman_nmpc evaluates it)
-    data = load_data(argparse.Namespace(
-        data=args.data, trajectories=args.trajectories,
-        equilibrium_trajectories=args.equilibrium_trajectories,
-        retrieval_trajectories=args.retrieval_trajectories, held_tension_trajectories=0,
-        data_seed=args.data_seed))
+    data = training_data(args.data, args.trajectories, args.data_seed, log=log,
+                         equilibrium_trajectories=args.equilibrium_trajectories,
+                         retrieval_trajectories=args.retrieval_trajectories)
     fit, val = data.split(1.0 - config.validation_fraction, seed=args.seed)
     as_tensors = lambda *a: [torch.as_tensor(v, dtype=torch.float32) for v in a]  # noqa: E731
     x, u = as_tensors(fit.x, fit.u)
@@ -328,10 +326,10 @@ def train(args, log=print):
 
 
 def add_data_flags(p):
-    p.add_argument('--trajectories', type=cli.integer(0), default=40_000)
-    p.add_argument('--equilibrium-trajectories', type=cli.integer(0), default=10_000)
-    p.add_argument('--retrieval-trajectories', type=cli.integer(0), default=20_000)
-    p.add_argument('--data-seed', type=cli.SEED, default=0)
+    p.add_argument('--trajectories', type=arguments.integer(0), default=40_000)
+    p.add_argument('--equilibrium-trajectories', type=arguments.integer(0), default=10_000)
+    p.add_argument('--retrieval-trajectories', type=arguments.integer(0), default=20_000)
+    p.add_argument('--data-seed', type=arguments.SEED, default=0)
 
 
 def parser():
@@ -340,34 +338,35 @@ def parser():
     f = commands.add_parser('train', help='fine-tune on the relifted map alone')
     start = f.add_mutually_exclusive_group(required=True)
     start.add_argument('--init', help='model to fine-tune (its config)')
-    start.add_argument('--fresh', type=cli.integer(1), nargs=4,
+    start.add_argument('--fresh', type=arguments.integer(1), nargs=4,
                        metavar=('HIDDEN', 'LAYERS', 'INPUT_HIDDEN', 'INPUT_LAYERS'),
                        help="a new model of this size, the teacher's other settings")
-    f.add_argument('--lift-dim', type=cli.integer(1), help='--fresh: K (default the teacher\'s)')
+    f.add_argument('--lift-dim', type=arguments.integer(1),
+                   help="--fresh: K (default the teacher's)")
     f.add_argument('--teacher', default='koopman_retrieval')
     f.add_argument('--targets', choices=('plant', 'teacher'), default='plant',
                    help="the one-step samples' next states")
-    f.add_argument('--floor', type=cli.number(minimum=0.0), default=0.1,
+    f.add_argument('--floor', type=arguments.number(minimum=0.0), default=0.1,
                    help='relative one-step error floor, in units of the median |increment|')
-    f.add_argument('--batches', type=cli.integer(1), default=200, help='batches per epoch')
-    f.add_argument('--step-batch', type=cli.integer(1), default=4096,
+    f.add_argument('--batches', type=arguments.integer(1), default=200, help='batches per epoch')
+    f.add_argument('--step-batch', type=arguments.integer(1), default=4096,
                    help='fresh one-step samples per batch')
-    f.add_argument('--window-batch', type=cli.integer(1), default=128,
+    f.add_argument('--window-batch', type=arguments.integer(1), default=128,
                    help='30-step windows per batch (the rollout term)')
-    f.add_argument('--out', required=True, type=cli.model_dir)
-    cli.add_overwrite(f)
+    f.add_argument('--out', required=True, type=arguments.model_dir)
+    arguments.add_overwrite(f)
     f.add_argument('--data', action='append', default=[], help='dataset file (repeatable)')
     add_data_flags(f)
-    f.add_argument('--epochs', type=cli.integer(1), default=10)
-    f.add_argument('--learning-rate', type=cli.number(above=0), default=3e-4)
-    f.add_argument('--weight-rollout', type=cli.number(minimum=0.0), default=1.0)
-    f.add_argument('--seed', type=cli.SEED, default=0)
-    f.add_argument('--threads', type=cli.integer(1), default=1)
+    f.add_argument('--epochs', type=arguments.integer(1), default=10)
+    f.add_argument('--learning-rate', type=arguments.number(above=0), default=3e-4)
+    f.add_argument('--weight-rollout', type=arguments.number(minimum=0.0), default=1.0)
+    f.add_argument('--seed', type=arguments.SEED, default=0)
+    f.add_argument('--threads', type=arguments.integer(1), default=1)
     c = commands.add_parser('compare', help='prediction and closed loop, models side by side')
     c.add_argument('--model', action='append', required=True,
                    help='model directory or shipped name (repeatable; the first is the '
                    'reference of the settle-time change)')
-    c.add_argument('--steps', type=cli.integer(1), default=2000)
+    c.add_argument('--steps', type=arguments.integer(1), default=2000)
     c.add_argument('--out', default='out/distill')
     return p
 

@@ -13,7 +13,7 @@ import json
 import os
 import sys
 
-from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl import arguments
 from tsr_koopman_ctrl.control.registry import CONTROLLERS, DEFAULT_LAW
 from tsr_koopman_ctrl.deployment import Deployment, DeploymentError, summary_table
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
@@ -25,8 +25,10 @@ def parser():
                    choices=sorted(CONTROLLERS),
                    help=f'the laws, each deployed with its defaults (default {DEFAULT_LAW} '
                    'and the paper\'s koopman_lqr)')
-    p.add_argument('--steps', type=cli.STEPS, default=2000)
+    p.add_argument('--steps', type=arguments.STEPS, default=2000)
     p.add_argument('--out', default='lab/results/main_job')
+    p.add_argument('--namespace', help="the nodes' ROS namespace (default: the root; every "
+                   'deployment has a DDS domain of its own)')
     return p
 
 
@@ -37,7 +39,8 @@ def main(argv=None):
     try:
         for law in args.law:
             run = Deployment(law, steps=args.steps, bags=os.path.join(args.out, 'bags'),
-                             logs=os.path.join(args.out, 'logs', law), progress=False).run()
+                             logs=os.path.join(args.out, 'logs', law), progress=False,
+                             namespace=args.namespace).run()
             rows.append(run.figures)
             curves[law] = (run.loop.tau, run.loop.x, run.loop.u[:-1])
             print(f'{law}: settle tau {run.figures["settle_tau"]}, ratio '

@@ -19,7 +19,7 @@ from tsr_koopman_ctrl.control import KoopmanMpc
 from tsr_koopman_ctrl.control.koopman_lqr import load_model
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS
 from tsr_koopman_ctrl.model import DEFAULT_MODEL
-from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl import arguments
 from lab.report import write_results
 
 
@@ -52,10 +52,10 @@ def parser():
     p = argparse.ArgumentParser(prog='mpc_sweep', description=__doc__.split('\n\n')[0])
     p.add_argument('--models', nargs='+', default=[DEFAULT_MODEL])
     horizon = KoopmanMpc.Settings.__dataclass_fields__['horizon'].metadata
-    p.add_argument('--horizons', nargs='+', type=cli.integer(horizon['low'], horizon['high']),
-                   default=[5])
-    p.add_argument('--steps', type=cli.STEPS, default=2000)
-    p.add_argument('--out', default=os.path.join('out', 'mpc_sweep'), type=cli.output_dir)
+    p.add_argument('--horizons', nargs='+', default=[5],
+                   type=arguments.integer(horizon['low'], horizon['high']))
+    p.add_argument('--steps', type=arguments.STEPS, default=2000)
+    p.add_argument('--out', default=os.path.join('out', 'mpc_sweep'), type=arguments.output_dir)
     return p
 
 

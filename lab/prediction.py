@@ -22,7 +22,7 @@ from tsr_koopman_ctrl.evaluation.plots import log_plot
 from tsr_koopman_ctrl.learning import baselines, errors
 from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.model import DEFAULT_MODEL, lifted, model_file
-from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl import arguments
 
 
 def training_data(metadata, trajectories=None):
@@ -159,17 +159,17 @@ def plot_sweep(rows, key, xlabel, path):
 def parser():
     p = argparse.ArgumentParser(prog='evaluate', description=__doc__.split('\n\n')[0])
     p.add_argument('--model', default=DEFAULT_MODEL)
-    p.add_argument('--out', default='out/evaluation', type=cli.output_dir)
-    p.add_argument('--test-trajectories', type=cli.integer(1), default=5000)
+    p.add_argument('--out', default='out/evaluation', type=arguments.output_dir)
+    p.add_argument('--test-trajectories', type=arguments.integer(1), default=5000)
     p.add_argument('--test-seed', type=int, default=datasets.TEST_SEED)
     p.add_argument('--no-sindy', action='store_true', help='skip SINDy (slowest fit)')
     p.add_argument('--sweep', action='store_true', help='also run the size and K sweeps')
     p.add_argument('--sweep-only', action='store_true', help='the sweeps, not the comparison')
-    p.add_argument('--sweep-trajectories', type=cli.integer(1), nargs='+',
+    p.add_argument('--sweep-trajectories', type=arguments.integer(1), nargs='+',
                    default=[10_000, 20_000, 30_000, 40_000, 50_000, 60_000])
-    p.add_argument('--sweep-lift-dims', type=cli.integer(1), nargs='+',
+    p.add_argument('--sweep-lift-dims', type=arguments.integer(1), nargs='+',
                    default=[8, 16, 24, 36, 48])
-    p.add_argument('--sweep-epochs', type=cli.integer(1), default=5)
+    p.add_argument('--sweep-epochs', type=arguments.integer(1), default=5)
     return p
 
 

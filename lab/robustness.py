@@ -15,7 +15,7 @@ import sys
 
 from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
-from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl import arguments
 from lab.report import write_results
 
 STARTS = COMPARISON_STARTS + HELD_OUT_STARTS[:2]
@@ -86,8 +86,8 @@ def parser():
     p = argparse.ArgumentParser(prog='robustness', description=__doc__.split('\n\n')[0])
     p.add_argument('--law', nargs='+', default=['koopman_mpc', 'linear_lqr'],
                    choices=sorted(CONTROLLERS))
-    p.add_argument('--steps', type=cli.STEPS, default=2000)
-    p.add_argument('--out', default=os.path.join('out', 'robustness'), type=cli.output_dir)
+    p.add_argument('--steps', type=arguments.STEPS, default=2000)
+    p.add_argument('--out', default=os.path.join('out', 'robustness'), type=arguments.output_dir)
     return p
 
 

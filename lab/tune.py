@@ -35,7 +35,7 @@ import argparse
 import sys
 
 from tsr_koopman_ctrl.control import CONTROLLERS
-from tsr_koopman_ctrl.commands import cli
+from tsr_koopman_ctrl import arguments
 from lab.tuning import tune
 from lab.tuning.run import Interrupted, OUT
 from lab.tuning.scoring import OBJECTIVES, TUNING_STARTS
@@ -45,9 +45,9 @@ from lab.tuning.storage import shown
 def parser():
     p = argparse.ArgumentParser(prog='tune', description=__doc__.split('\n\n')[0])
     p.add_argument('--law', required=True, choices=sorted(CONTROLLERS))
-    p.add_argument('--trials', type=cli.integer(1), default=60,
+    p.add_argument('--trials', type=arguments.integer(1), default=60,
                    help='finished trials in the study')
-    p.add_argument('--jobs', type=cli.integer(1), default=1,
+    p.add_argument('--jobs', type=arguments.integer(1), default=1,
                    help='worker processes on the study (and for its final report)')
     p.add_argument('--storage', help='journal file or database URL, e.g. '
                    'postgresql://user:password@host:port/db (default: <out>/<study>.journal)')
@@ -64,11 +64,11 @@ def parser():
     p.add_argument('--starts', choices=sorted(TUNING_STARTS), default='comparison',
                    help="the tuning starts: the four comparison starts ('comparison'), or those "
                    "and two with an initial swing ('swing'); the held-out starts never")
-    p.add_argument('--swing-max', type=cli.number(above=0), default=0.8,
+    p.add_argument('--swing-max', type=arguments.number(above=0), default=0.8,
                    help='largest |theta| a run may reach and still count as settled [rad]')
-    p.add_argument('--steps', type=cli.STEPS, default=2000)
-    p.add_argument('--seed', type=cli.SEED, default=0)
-    p.add_argument('--out', default=OUT, type=cli.output_dir)
+    p.add_argument('--steps', type=arguments.STEPS, default=2000)
+    p.add_argument('--seed', type=arguments.SEED, default=0)
+    p.add_argument('--out', default=OUT, type=arguments.output_dir)
     p.add_argument('--fix', action='append', default=[], metavar='SETTING=VALUE',
                    help='hold a setting at a value instead of tuning it (repeatable; e.g. '
                    'state_weight=state for koopman_lqr)')
@@ -91,7 +91,7 @@ def main(argv=None):
     except Interrupted as stop:
         print(f'tune: interrupted; {shown(stop.storage)} keeps the finished trials: the same '
               'command resumes the study', file=sys.stderr)
-        return cli.INTERRUPTED_STATUS
+        return arguments.INTERRUPTED_STATUS
     except RuntimeError as error:
         print(f'tune: {error}', file=sys.stderr)
         return 1

@@ -2,9 +2,9 @@
 
 ROS-free: the shipped model's path, a small sampled data set and a tiny trained model.
 ROS (tests marked `ros`): the fixtures users import into their own suites
-(`tsr_koopman_ctrl.testing`: an isolated DDS domain, nodes as separate processes, a whole loop,
-an in-test rclpy node on the same domain). A test that uses them must carry the `ros` marker,
-so that `pytest -m "not ros"` runs the core alone.
+(`tsr_koopman_ctrl.testing`: a DDS domain and a namespace of each test's own, nodes as separate
+processes, a whole loop, an in-test rclpy node on the same domain). A test that uses them must
+carry the `ros` marker, so that `pytest -m "not ros"` runs the core alone.
 """
 
 import os
@@ -19,7 +19,7 @@ os.environ.setdefault('OMP_NUM_THREADS', '1')
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHIPPED_MODEL = str(ROOT / 'models' / 'koopman_default')
-ROS_FIXTURES = {'ros', 'start_node', 'ros_domain', 'tsr_loop'}
+ROS_FIXTURES = {'ros', 'start_node', 'ros_domain', 'ros_namespace', 'tsr_loop'}
 pytest_plugins = ['tsr_koopman_ctrl.testing']
 
 
@@ -58,4 +58,5 @@ def tiny_model(small_data, tmp_path_factory):
 
 
 # ---------------------------------------------------------------------------------------------
-# ROS: the fixtures users get (tsr_koopman_ctrl.testing): ros_domain, ros, start_node, tsr_loop
+# ROS: the fixtures users get (tsr_koopman_ctrl.testing): ros_domain, ros_namespace, ros,
+# start_node, tsr_loop

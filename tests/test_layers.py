@@ -1,8 +1,10 @@
-"""The house's floors: no import runs back up a floor, and the product never imports the lab.
+"""The house's floors: no import runs back up a floor, the product never imports the lab, and
+the lab stands on the public API, never on the commands.
 
 Floors, from the ground: the plant core (tsr_sim, ROS-free); the model and the bags; the laws;
 the figures of a run; learning; the ROS glue and the process layer (nodes, the deployment, the
-launcher, tsr_sim's node and ros_io); the commands and the test fixtures; the lab beside it all.
+launcher, tsr_sim's node and ros_io); the commands, the tools' argparse types and the test
+fixtures; the lab beside it all.
 A module imports from its own floor or below. Read from the source (ast), imports inside
 functions included.
 """
@@ -25,7 +27,8 @@ FLOORS = [
     ('tsr_koopman_ctrl.learning',),
     ('tsr_koopman_ctrl.nodes', 'tsr_koopman_ctrl.deployment', 'tsr_koopman_ctrl.launcher',
      'tsr_sim.sim_node', 'tsr_sim.ros_io'),
-    ('tsr_koopman_ctrl.commands', 'tsr_koopman_ctrl.testing', 'tsr_koopman_ctrl'),
+    ('tsr_koopman_ctrl.commands', 'tsr_koopman_ctrl.testing', 'tsr_koopman_ctrl.arguments',
+     'tsr_koopman_ctrl'),
     ('lab',),
 ]
 
@@ -49,7 +52,9 @@ def modules():
             yield (name[:-len('.__init__')] if name.endswith('.__init__') else name), path
 
 
-def imports(path, name):
+def imports(path, name, names=False):
+    """The modules `path` imports; `names`: also `module.name` for each name of a
+    `from module import name` (a submodule imported so)."""
     tree = ast.parse(path.read_text())
     package = name if path.name == '__init__.py' else name.rpartition('.')[0]
     for node in ast.walk(tree):
@@ -58,9 +63,12 @@ def imports(path, name):
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.rsplit('.', node.level - 1)[0] if node.level > 1 else package
-                yield f'{base}.{node.module}' if node.module else base
+                module = f'{base}.{node.module}' if node.module else base
             else:
-                yield node.module
+                module = node.module
+            yield module
+            if names:
+                yield from (f'{module}.{alias.name}' for alias in node.names)
 
 
 @pytest.mark.parametrize('name, path', list(modules()), ids=lambda v: str(v))
@@ -79,3 +87,14 @@ def test_the_laws_never_import_the_figures_and_the_product_never_the_lab():
             assert not any(t.startswith('tsr_koopman_ctrl.evaluation') for t in targets), name
         if not name.startswith('lab'):
             assert not any(t == 'lab' or t.startswith('lab.') for t in targets), name
+
+
+def test_the_lab_never_imports_the_commands():
+    """The commands are parse -> call -> print over the public API; the lab calls that API
+    (learning.data, bag.files, control.settings.parse_assignments, arguments), not a command's
+    main or its internals."""
+    found = [(name, target) for name, path in modules() if name.startswith('lab')
+             for target in imports(path, name, names=True)
+             if target == 'tsr_koopman_ctrl.commands'
+             or target.startswith('tsr_koopman_ctrl.commands.')]
+    assert found == []

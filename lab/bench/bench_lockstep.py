@@ -11,7 +11,8 @@ import tempfile
 from tsr_sim.wire import resolve, STATE_TOPIC
 
 from tsr_koopman_ctrl.bag import BagReader
-from tsr_koopman_ctrl.commands import deploy
+from tsr_koopman_ctrl.control.settings import parse_assignments
+from tsr_koopman_ctrl.deployment import Deployment
 
 
 def main():
@@ -24,14 +25,16 @@ def main():
     parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
                         help='a controller setting, as deploy --set')
     args = parser.parse_args()
+    try:
+        settings = parse_assignments(args.set)
+    except ValueError as error:
+        parser.error(str(error))
     with tempfile.TemporaryDirectory() as tmp:
-        bags = os.path.join(tmp, 'bags')
-        if deploy.main(['--law', args.law, '--steps', str(args.steps),
-                        '--out', os.path.join(tmp, 'out'), '--bags', bags,
-                        *[item for value in args.set for item in ('--set', value)]]) != 0:
-            raise SystemExit('deployment failed')
-        bag_dir = os.path.join(bags, os.listdir(bags)[0])
-        times = [m.log_time_ns for m in BagReader(bag_dir).messages({resolve(STATE_TOPIC)})]
+        run = Deployment(args.law, settings, steps=args.steps, bags=os.path.join(tmp, 'bags'),
+                         logs=os.path.join(tmp, 'logs')).run()
+        if run.halted:
+            raise SystemExit('deployment failed: the state left the model domain')
+        times = [m.log_time_ns for m in BagReader(run.bag).messages({resolve(STATE_TOPIC)})]
     span = (times[-1] - times[0]) * 1e-9
     print(f'lockstep over DDS ({args.law}{", " if args.set else ""}{" ".join(args.set)}): '
           f'{len(times) - 1} steps in {span:.2f} s = '

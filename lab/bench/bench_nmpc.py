@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 from tsr_koopman_ctrl.control import closed_loop, make_controller, nmpc
-from tsr_koopman_ctrl.commands.deploy import parsed_settings
+from tsr_koopman_ctrl.control.settings import parse_assignments
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS
 
 # Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
@@ -94,7 +94,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     start = (COMPARISON_STARTS + HELD_OUT_STARTS)[args.start]
     overrides = {law: {} for law in args.law}
-    for law, values in parsed_settings(args.set).items():   # deploy's --set, parsed alike
+    for law, values in parse_assignments(args.set).items():   # deploy's --set, parsed alike
         if law in overrides:
             overrides[law].update(values)
     # condense is a module function: timed through the module

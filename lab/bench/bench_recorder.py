@@ -24,7 +24,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt64
 
 from tsr_koopman_ctrl.bag import BagReader
-from tsr_koopman_ctrl.launcher import NodeProcess
+from tsr_koopman_ctrl.launcher import NodeProcess, reserve_domain
 
 TOPIC = '/bench/counter'
 # Deep reliable history: a KEEP_ALL writer errors out once its queue is full on a burst.
@@ -91,7 +91,8 @@ def main():
     parser.add_argument('--kills', type=int, default=3)
     args = parser.parse_args()
     n = args.messages
-    domain = random.randint(120, 219)
+    reservation = reserve_domain()      # one no other process on the host uses, held to the end
+    domain = reservation.id
     context = Context()
     rclpy.init(context=context, domain_id=domain)
     node = rclpy.create_node('bench_publisher', context=context)
@@ -114,6 +115,7 @@ def main():
                            f'killed_{index}') for index in range(args.kills)]
     node.destroy_node()
     rclpy.shutdown(context=context)
+    reservation.release()
     print(f'recorder: {n} messages in {rec_s:.2f} s = {n / rec_s:,.0f} msg/s; stopped at once '
           f'(exit {stopped}): in bag {len(got)} (lost {n - len(got)}, in order: '
           f'{got == list(range(len(got)))})')

@@ -26,7 +26,7 @@ import numpy as np
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control import closed_loop, make_controller
-from tsr_koopman_ctrl.commands.deploy import parsed_settings
+from tsr_koopman_ctrl.control.settings import parse_assignments
 from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, frontier_tau, HELD_OUT_STARTS,
                                          run_figures)
 
@@ -75,7 +75,7 @@ def main(argv=None):
     parser.add_argument('--out')
     args = parser.parse_args(argv)
     overrides = {law: {} for law in args.law}
-    for law, values in parsed_settings(args.set).items():   # deploy's --set, parsed alike
+    for law, values in parse_assignments(args.set).items():   # deploy's --set, parsed alike
         if law in overrides:
             overrides[law].update(values)
     if args.suite == 'swing0.4':

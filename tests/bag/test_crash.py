@@ -469,3 +469,15 @@ def test_recover_keeps_a_recorded_topic_that_never_had_a_message(tmp_path, capsy
     got, _ = read_with_rosbags(out)      # still a bag rosbags opens, with every message
     assert [g[3] for g in got] == [f'm{i}' for i in range(20)]
     writer.close()
+
+
+def test_recover_and_info_are_an_api_the_command_only_prints(tmp_path, capsys):
+    """`bag recover` / `bag info` print what `bag.recover` / `bag.info` return (the lab and
+    users call those), and nothing else."""
+    killed, _ = write_killed_bag(tmp_path)
+    result = bag.recover(str(killed), out=str(tmp_path / 'by_api'))
+    assert sum(1 for _ in bag.BagReader(result.directory).messages()) == result.messages > 0
+    assert bag_tool.main(['recover', str(killed), '--out', str(tmp_path / 'by_command')]) == 0
+    assert capsys.readouterr().out == result.line().replace('by_api', 'by_command') + '\n'
+    assert bag_tool.main(['info', result.directory]) == 0
+    assert capsys.readouterr().out == '\n'.join(bag.info(result.directory)) + '\n'

@@ -17,14 +17,19 @@ from tsr_koopman_ctrl.deployment import DeploymentError, watch
 pytestmark = pytest.mark.ros
 
 
-def deploy_args(tmp_path, ros_domain, *extra):
+def deploy_args(tmp_path, ros_domain, namespace, *extra):
+    """deploy's arguments on the test's domain, in `namespace` (None: deploy's default, the
+    root namespace)."""
     return ['--out', str(tmp_path / 'out'), '--bags', str(tmp_path / 'bags'),
-            '--domain', str(ros_domain), *extra]
+            '--domain', str(ros_domain), *(['--namespace', namespace] if namespace else []),
+            *extra]
 
 
 def test_deployment_over_dds_matches_the_ros_free_loop_and_leaves_a_bag(tmp_path, ros_domain):
+    """In the root namespace on purpose: deploy's default, the bag's topics as the README
+    shows them (the test's own domain keeps it apart from every other test)."""
     steps = 400
-    assert deploy.main(deploy_args(tmp_path, ros_domain, '--law', 'linear_lqr',
+    assert deploy.main(deploy_args(tmp_path, ros_domain, None, '--law', 'linear_lqr',
                                    '--steps', str(steps))) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
     loop = read_loop(str(bag_path))
@@ -78,12 +83,15 @@ def assert_one_time_base(bag_path, steps):
         assert all(states[step] == ns for step, ns in stamped[topic].items()), topic
 
 
-def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(tmp_path, ros_domain):
+def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(
+        tmp_path, ros_domain, ros_namespace):
     """The main job as the README runs it (2000 steps, koopman_nmpc, the shipped model)."""
     steps = 2000
-    assert deploy.main(deploy_args(tmp_path, ros_domain, '--steps', str(steps))) == 0
+    assert deploy.main(deploy_args(tmp_path, ros_domain, ros_namespace,
+                                   '--steps', str(steps))) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
     loop = read_loop(str(bag_path))
+    assert loop.namespace == ros_namespace
     law = make_controller('koopman_nmpc')
     want_x, want_u = closed_loop(law, dynamics.PAPER_INITIAL_STATE, steps)
     np.testing.assert_allclose(loop.x, want_x, atol=1e-7)
@@ -99,8 +107,8 @@ def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(tmp
 
 def test_loop_under_a_namespace_reads_back_from_the_bag(tmp_path, ros_domain):
     steps = 100
-    assert deploy.main(deploy_args(tmp_path, ros_domain, '--law', 'linear_lqr',
-                                   '--steps', str(steps), '--namespace', '/tsr1')) == 0
+    assert deploy.main(deploy_args(tmp_path, ros_domain, '/tsr1', '--law', 'linear_lqr',
+                                   '--steps', str(steps))) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
     loop = read_loop(str(bag_path))
     assert loop.namespace == '/tsr1'
@@ -114,22 +122,24 @@ def test_loop_under_a_namespace_reads_back_from_the_bag(tmp_path, ros_domain):
             '/clock'} <= topics
 
 
-def test_a_start_outside_the_domain_is_one_clear_line(tmp_path, ros_domain, capsys):
+def test_a_start_outside_the_domain_is_one_clear_line(tmp_path, ros_domain, ros_namespace,
+                                                      capsys):
     with pytest.raises(SystemExit) as exit_info:
-        deploy.main(deploy_args(tmp_path, ros_domain, '--x0', '0', '0', '-1.5', '0.5'))
+        deploy.main(deploy_args(tmp_path, ros_domain, ros_namespace,
+                                '--x0', '0', '0', '-1.5', '0.5'))
     assert exit_info.value.code == 2
     assert 'outside the model domain' in capsys.readouterr().err
 
 
-def test_a_node_failing_at_start_is_reported_with_its_log(tmp_path, ros_domain, capfd,
-                                                          monkeypatch):
+def test_a_node_failing_at_start_is_reported_with_its_log(tmp_path, ros_domain, ros_namespace,
+                                                          capfd, monkeypatch):
     # deploy checks a plant file before any node starts (tools/test_cli.py); with that check
     # off, as for anything it could miss, the simulator refuses the value itself.
     from tsr_sim import plant as plant_module
     monkeypatch.setattr(plant_module, 'check_plant_parameter_values', lambda *args: None)
     plant = tmp_path / 'plant.yaml'
     plant.write_text('/**:\n  ros__parameters:\n    substeps: 0\n')
-    assert deploy.main(deploy_args(tmp_path, ros_domain, '--plant', str(plant),
+    assert deploy.main(deploy_args(tmp_path, ros_domain, ros_namespace, '--plant', str(plant),
                                    '--steps', '50')) == 1
     out, err = capfd.readouterr()
     assert 'tsr_sim exited with 2' in err
@@ -137,35 +147,38 @@ def test_a_node_failing_at_start_is_reported_with_its_log(tmp_path, ros_domain, 
 
 
 def test_a_node_failing_beside_the_simulator_is_reported_with_its_log_tail(
-        tmp_path, ros_domain):
+        tmp_path, ros_domain, ros_namespace):
     """deploy's watch, on real processes: a recorder that cannot start (deploy itself checks
     what it passes, so this is the path of an unexpected failure) stops the wait with the last
     lines of its log, while the simulator still waits for its subscribers."""
     from tsr_koopman_ctrl.launcher import NodeProcess
     sim = NodeProcess('tsr_sim', 'sim_node', 'tsr_sim', {'wait_for_subscribers': 2},
-                      domain_id=ros_domain, log_path=str(tmp_path / 'sim.log'))
-    recorder = NodeProcess('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
-                           {'output_dir': str(tmp_path), 'topics': ['state'],
-                            'types': ['tsr_msgs/msg/NoSuchType']},
-                           domain_id=ros_domain, log_path=str(tmp_path / 'recorder.log'))
+                      domain_id=ros_domain, log_path=str(tmp_path / 'sim.log'),
+                      namespace=ros_namespace)
+    recorder = None
     try:
+        recorder = NodeProcess('tsr_koopman_ctrl', 'recorder_node', 'tsr_recorder',
+                               {'output_dir': str(tmp_path), 'topics': ['state'],
+                                'types': ['tsr_msgs/msg/NoSuchType']}, domain_id=ros_domain,
+                               log_path=str(tmp_path / 'recorder.log'), namespace=ros_namespace)
         with pytest.raises(DeploymentError) as failed:
             watch(sim, (recorder,), timeout=60.0)
     finally:
         sim.stop()
-        recorder.stop()
+        if recorder is not None:
+            recorder.stop()
     report = str(failed.value)
     assert report.startswith('tsr_recorder exited early\n--- tsr_recorder exited with 2; '
                              f'last lines of {tmp_path}/recorder.log:\ncannot start: ')
     assert 'NoSuchType' in report
 
 
-def test_excitation_and_run_info_are_recorded(tmp_path, ros_domain):
+def test_excitation_and_run_info_are_recorded(tmp_path, ros_domain, ros_namespace):
     """The bag says what ran (both nodes' RunInfo) and what the controller added, and the
     commands are the law's plus exactly that excitation."""
     from tsr_koopman_ctrl.control.excitation import Excitation
     steps = 200
-    assert deploy.main(deploy_args(tmp_path, ros_domain, '--law', 'linear_lqr',
+    assert deploy.main(deploy_args(tmp_path, ros_domain, ros_namespace, '--law', 'linear_lqr',
                                    '--steps', str(steps), '--set', 'excitation.kind=prbs',
                                    '--set', 'observer.disturbance=none',
                                    '--set', 'excitation.amplitude=0.5',
@@ -188,12 +201,12 @@ def test_excitation_and_run_info_are_recorded(tmp_path, ros_domain):
     np.testing.assert_allclose(loop.u[:steps], want_u, atol=1e-9)
 
 
-def test_a_plant_variant_over_dds_is_the_ros_free_one(tmp_path, ros_domain):
+def test_a_plant_variant_over_dds_is_the_ros_free_one(tmp_path, ros_domain, ros_namespace):
     """--plant actuator_weak: the simulator runs the variant (its RunInfo says so) and the DDS
     loop equals the ROS-free loop on the same plant file, step for step."""
     from tsr_sim.plant import plant_parameters
     steps = 300
-    assert deploy.main(deploy_args(tmp_path, ros_domain, '--law', 'linear_lqr',
+    assert deploy.main(deploy_args(tmp_path, ros_domain, ros_namespace, '--law', 'linear_lqr',
                                    '--steps', str(steps), '--plant', 'actuator_weak')) == 0
     (bag_path,) = (tmp_path / 'bags').iterdir()
     loop = read_loop(str(bag_path))
@@ -222,25 +235,43 @@ def recorded_states(bags):
     return 0
 
 
-def test_ctrl_c_closes_the_bag_summarises_the_steps_run_and_exits_130(tmp_path, ros_domain):
+def test_ctrl_c_closes_the_bag_summarises_the_steps_run_and_exits_130(tmp_path, ros_domain,
+                                                                      ros_namespace):
     """Ctrl-C used to end `deploy` with status 0, and `loop` went on with the cut-short bag."""
+    import contextlib
     import os
     import signal
     import subprocess
     import sys
     import time
     command = [sys.executable, '-m', 'tsr_koopman_ctrl.commands.deploy', '--law',
-               'linear_lqr', '--steps', '100000', *deploy_args(tmp_path, ros_domain)]
+               'linear_lqr', '--steps', '100000',
+               *deploy_args(tmp_path, ros_domain, ros_namespace)]
     # SIGINT as a terminal delivers it: a test run started in the background (`.ci/run &`)
     # inherits SIGINT ignored, which Python then leaves ignored.
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.monotonic() + 120.0
-    while recorded_states(tmp_path / 'bags') < 100:      # some steps into the bag, under load
-        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-        time.sleep(0.2)
-    os.kill(proc.pid, signal.SIGINT)
-    out, err = proc.communicate(timeout=180)   # the nodes stop in turn, the bag is read
+    # Output to files: a pipe nobody reads while the loop runs could fill and stall it. A
+    # session of its own: whatever happens, the group (deploy and its nodes) is killed after.
+    with open(tmp_path / 'deploy.out', 'w') as out_file, \
+            open(tmp_path / 'deploy.err', 'w') as err_file:
+        proc = subprocess.Popen(
+            command, stdout=out_file, stderr=err_file, start_new_session=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120.0
+        while (recorded_states(tmp_path / 'bags') < 100 and proc.poll() is None
+               and time.monotonic() < deadline):      # some steps into the bag, under load
+            time.sleep(0.2)
+        reached = recorded_states(tmp_path / 'bags') >= 100
+        running = proc.poll() is None
+        if running:
+            os.kill(proc.pid, signal.SIGINT)
+            proc.wait(timeout=180)      # the nodes stop in turn, the bag is read
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    out, err = (tmp_path / 'deploy.out').read_text(), (tmp_path / 'deploy.err').read_text()
+    assert running and reached, f'no 100 steps in the bag of a running deploy:\n{out}\n{err}'
     assert proc.returncode == 130, (out, err)
     assert '[deploy] interrupted: closing the bag' in out
     assert 'holds the steps run so far' in err and 'Traceback' not in err
@@ -252,7 +283,7 @@ def test_ctrl_c_closes_the_bag_summarises_the_steps_run_and_exits_130(tmp_path, 
     assert summary[0]['steps'] == int(loop.step[-1])
 
 
-def test_deploy_bags_hold_every_step_from_0_under_load(tmp_path, ros_domain):
+def test_deploy_bags_hold_every_step_from_0_under_load(tmp_path, ros_domain, ros_namespace):
     """Two processes keep both cores busy while three deployments run: each bag holds every
     state from step 0, its command and its controller status (the simulator starts once the
     controller and the recorder read, at the DDS level, what it and the controller publish)."""
@@ -264,8 +295,8 @@ def test_deploy_bags_hold_every_step_from_0_under_load(tmp_path, ros_domain):
         for run in range(3):
             out = tmp_path / f'run{run}'
             assert deploy.main(['--out', str(out / 'out'), '--bags', str(out / 'bags'),
-                                '--domain', str(ros_domain), '--law', 'linear_lqr',
-                                '--steps', str(steps)]) == 0
+                                '--domain', str(ros_domain), '--namespace', ros_namespace,
+                                '--law', 'linear_lqr', '--steps', str(steps)]) == 0
             (bag_path,) = (out / 'bags').iterdir()
             loop = read_loop(str(bag_path))
             assert loop.step.tolist() == list(range(steps + 1)), run

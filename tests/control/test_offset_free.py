@@ -131,3 +131,20 @@ def test_the_observer_is_told_the_command_actually_sent():
 def test_a_model_predictor_needs_a_model():
     with pytest.raises(ValueError, match='linear_lqr has no model'):
         make_controller('linear_lqr', observer={'predictor': 'model'})
+
+
+def test_observer_none_builds_the_default_law_bare_as_the_readme_words_it():
+    """make_controller('koopman_nmpc', observer='none'): the supervised law with no observer
+    on the learned law or on its fallback, flying as the same law built with the observer's
+    settings given in full; the default wraps both."""
+    from tsr_koopman_ctrl.control.supervisor import Supervisor
+    bare = make_controller('koopman_nmpc', observer='none')
+    assert isinstance(bare, Supervisor)
+    assert not isinstance(bare.learned, OffsetFree) and not isinstance(bare.fallback, OffsetFree)
+    wrapped = make_controller('koopman_nmpc')
+    assert isinstance(wrapped.learned, OffsetFree) and isinstance(wrapped.fallback, OffsetFree)
+    x, u = closed_loop(bare, PAPER_X0, 150)
+    same_x, same_u = closed_loop(make_controller(
+        'koopman_nmpc', observer=ObserverSettings(disturbance='none')), PAPER_X0, 150)
+    np.testing.assert_array_equal(u, same_u)
+    assert np.isfinite(u).all() and len(x) == 151

@@ -70,6 +70,25 @@ def test_command_line_values_take_the_setting_type():
         parse_value(settings, 'horizon', 'five')
 
 
+def test_assignments_parse_into_sections_once_for_deploy_and_the_lab():
+    """SECTION.SETTING=VALUE: one parser (control.settings) for deploy's --set and the lab's."""
+    from tsr_koopman_ctrl.control.settings import parse_assignments
+    assert parse_assignments(['koopman_mpc.horizon=8', 'observer.disturbance=none',
+                              'koopman_mpc.q=1,2,3,4', 'supervisor.fallback=none']) == {
+        'koopman_mpc': {'horizon': 8, 'q': (1.0, 2.0, 3.0, 4.0)},
+        'observer': {'disturbance': 'none'}, 'supervisor': {'fallback': 'none'}}
+    for bad, message in (('koopman_mpc.horizon', 'SECTION.SETTING=VALUE'),
+                         ('horizon=8', 'SECTION.SETTING=VALUE'),
+                         ('pid.gain=1', "unknown law 'pid'"),
+                         ('koopman_mpc.horizn=8', "no setting 'horizn'"),
+                         ('koopman_mpc.horizon=five', "cannot read 'five'")):
+        with pytest.raises(ValueError, match=message):
+            parse_assignments([bad])
+    mpc = CONTROLLERS['koopman_mpc'].Settings        # the caller's own sections
+    assert parse_assignments(['mine.horizon=3'], lambda section: mpc) == {
+        'mine': {'horizon': 3}}
+
+
 @pytest.mark.parametrize('steps', [-5, 2.5, True])
 def test_closed_loop_refuses_a_step_count_that_is_not_a_whole_number(steps):
     from tsr_koopman_ctrl.control import closed_loop

@@ -172,5 +172,6 @@ def test_recorder_bag_of_a_killed_deployment_recovers_with_the_command(start_nod
     np.testing.assert_array_equal(fixed.x, kept.x)
     with AnyReader([tmp_path / 'fixed'],
                    default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        states = sum(c.msgcount for c in reader.connections if c.topic == '/tsr/state')
+        states = sum(c.msgcount for c in reader.connections
+                     if c.topic == wire.resolve(wire.STATE_TOPIC, ros.namespace))
     assert states >= kept.step.size

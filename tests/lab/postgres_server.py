@@ -126,14 +126,18 @@ class PostgresServer:
         return self.log.read_text(errors='replace')[-2000:] if self.log.exists() else ''
 
     def stop(self):
-        """A fast shutdown (SIGINT: sessions ended, data written), killed where it hangs."""
+        """A fast shutdown (SIGINT: sessions ended, data written), killed where it hangs or
+        the wait is cut short (a test's timeout)."""
         if self.process is None or self.process.poll() is not None:
             return
-        self.process.send_signal(signal.SIGINT)
         try:
+            self.process.send_signal(signal.SIGINT)
             self.process.wait(STOP_TIMEOUT)
         except subprocess.TimeoutExpired:
-            self.process.kill()
+            pass
+        finally:
+            if self.process.poll() is None:
+                self.process.kill()
             self.process.wait()
 
 

@@ -17,9 +17,12 @@ from lab import data_loop as loop
 pytestmark = pytest.mark.ros
 
 
-def test_one_round_deploys_records_retrains_and_reports(tmp_path, ros_domain):
+@pytest.mark.timeout(900)          # 14 deployments and a retraining: 3 min on 2 loaded cores
+def test_one_round_deploys_records_retrains_and_reports(tmp_path, ros_namespace):
+    """Every deployment on a domain of its own (Deployment reserves one), in the test's
+    namespace."""
     assert loop.main(['--plant', 'actuator_weak', '--rounds', '1', '--steps', '300',
-                      '--epochs', '1', '--out', str(tmp_path)]) == 0
+                      '--epochs', '1', '--out', str(tmp_path), '--namespace', ros_namespace]) == 0
     work = tmp_path / 'actuator_weak'
     result = json.loads((work / 'report.json').read_text())
     assert [r['round'] for r in result['rounds']] == [0, 1]
@@ -30,6 +33,7 @@ def test_one_round_deploys_records_retrains_and_reports(tmp_path, ros_domain):
     train = sorted((work / 'bags' / 'round1_train').iterdir())
     assert len(train) == len(COMPARISON_STARTS)
     recorded = read_loop(str(train[0]))
+    assert recorded.namespace == ros_namespace
     assert recorded.run_info['simulator']['plant'] == 'actuator_weak'
     assert recorded.run_info['simulator']['variant']['actuator_gain'] == 0.9
     assert np.any(recorded.excitation != 0.0)

@@ -1,6 +1,12 @@
 """The tuning command: the law's own settings first, a study that resumes, held-out scoring."""
 
+import contextlib
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -163,25 +169,39 @@ def test_swing_starts_tune_on_six_starts_and_the_study_keeps_them(tmp_path, caps
     assert 'was tuned on --starts swing, not comparison' in capsys.readouterr().err
 
 
-def _start_tune(tmp_path, trials=100000):
-    import signal
-    import subprocess
-    import sys
+@contextlib.contextmanager
+def _tune_running(tmp_path, trials=100000):
+    """`lab.tune` started in a process group of its own (the command and its workers); the
+    group is killed on the way out, whatever happened in between."""
     # SIGINT as a terminal delivers it: a test run started in the background (`.ci/run &`)
     # inherits SIGINT ignored, which Python then leaves ignored.
-    return subprocess.Popen(
+    proc = subprocess.Popen(
         [sys.executable, '-m', 'lab.tune', '--law', 'linear_lqr', '--steps',
          '200', '--trials', str(trials), '--jobs', '2', '--out', str(tmp_path)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        yield proc
+    finally:
+        _stop_group(proc)
+
+
+def _stop_group(proc):
+    """Kill whatever of `proc`'s process group still runs and read its output: (out, err).
+    Killed first, so that reading cannot wait for a command that does not end."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    return proc.communicate()
 
 
 def _journal_size_once_trials_run(tmp_path, proc, timeout=60.0):
-    import time
     journal = tmp_path / 'linear_lqr_swing0.8.journal'
     deadline = time.monotonic() + timeout
     while not journal.exists() or journal.stat().st_size < 20000:    # several trials in
-        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        if proc.poll() is not None or time.monotonic() > deadline:
+            _, err = _stop_group(proc)
+            pytest.fail(f'no trials in {journal} after {timeout} s (tune exited with '
+                        f'{proc.returncode}):\n{err}')
         time.sleep(0.2)
     return journal
 
@@ -190,14 +210,12 @@ def test_ctrl_c_lets_the_trials_in_progress_finish_and_says_how_to_resume(tmp_pa
     """Ctrl-C reaches the command and its workers (one process group). Before: five
     tracebacks, and the trials in progress stored as FAIL, which counted against --trials."""
     import collections
-    import os
-    import signal
 
     import optuna
-    proc = _start_tune(tmp_path)
-    journal = _journal_size_once_trials_run(tmp_path, proc)
-    os.killpg(proc.pid, signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
+    with _tune_running(tmp_path) as proc:
+        journal = _journal_size_once_trials_run(tmp_path, proc)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert 'Traceback' not in err and 'finishing the trials in progress' in err
     assert f'tune: interrupted; {journal} keeps the finished trials' in err
@@ -210,24 +228,18 @@ def test_ctrl_c_lets_the_trials_in_progress_finish_and_says_how_to_resume(tmp_pa
 
 def test_killing_the_command_stops_its_workers(tmp_path):
     """The workers went on filling the journal, unseen, after their command was killed."""
-    import os
-    import signal
-    import time
-    proc = _start_tune(tmp_path)
-    journal = _journal_size_once_trials_run(tmp_path, proc)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.communicate(timeout=10)
-    time.sleep(3.0)                      # a 200-step linear_lqr trial takes well under that
-    size = journal.stat().st_size
-    time.sleep(3.0)
-    alive = _group_alive(proc.pid)
-    if alive:                            # leave nothing running, whatever the outcome
-        os.killpg(proc.pid, signal.SIGKILL)
+    with _tune_running(tmp_path) as proc:
+        journal = _journal_size_once_trials_run(tmp_path, proc)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=10)
+        time.sleep(3.0)                  # a 200-step linear_lqr trial takes well under that
+        size = journal.stat().st_size
+        time.sleep(3.0)
+        alive = _group_alive(proc.pid)
     assert journal.stat().st_size == size and not alive
 
 
 def _group_alive(group):
-    import os
     try:
         os.killpg(group, 0)
         return True
@@ -302,10 +314,6 @@ def test_a_worker_killed_mid_trial_leaves_the_postgres_study_usable(postgres, tm
     trial stays RUNNING (it does not count), and the same command resumes the study to the
     trials asked for."""
     import collections
-    import os
-    import signal
-    import subprocess
-    import sys
 
     import optuna
     argv = ['--law', 'linear_lqr', '--steps', '300', '--trials', '8', '--jobs', '2',
@@ -317,7 +325,7 @@ def test_a_worker_killed_mid_trial_leaves_the_postgres_study_usable(postgres, tm
         _, err = proc.communicate(timeout=300)
     finally:
         if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+            _stop_group(proc)
     assert proc.returncode == 1 and 'a tuning worker failed' in err, err
     study = optuna.load_study(study_name='linear_lqr_swing0.8', storage=postgres.url)
     assert study.trials[killed].state.name == 'RUNNING'
@@ -336,15 +344,13 @@ def test_a_worker_killed_mid_trial_leaves_the_postgres_study_usable(postgres, tm
 def _kill_a_worker_mid_trial(url, proc, timeout=240.0):
     """The number of a trial whose worker was SIGKILLed while it ran: the worker is stopped
     (SIGSTOP) first, so that its trial cannot end between the look and the kill."""
-    import os
-    import signal
-    import time
-
     import optuna
     deadline = time.monotonic() + timeout
     storage = None
     while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.communicate()
+        if proc.poll() is not None:
+            _, err = proc.communicate()
+            pytest.fail(f'tune exited with {proc.returncode} before a trial ran:\n{err}')
         if storage is None and _has_tables(url):
             storage = optuna.storages.RDBStorage(url)     # one engine, not one a look
         names = optuna.study.get_all_study_names(storage) if storage else []

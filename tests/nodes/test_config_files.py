@@ -65,10 +65,11 @@ def test_sim_example_params_run_a_lockstep_simulator(ros, start_node):
 
 
 @pytest.mark.ros
-def test_bad_parameters_fail_at_start_with_one_line(ros_domain):
+def test_bad_parameters_fail_at_start_with_one_line(ros_domain, ros_namespace):
     for args in (['-p', 'mode:=bogus'], ['-p', 'substeps:=0'], ['-p', 'step:=fast'],
                  ['-p', 'initial_state:=[0.0, 0.0, -1.5, 0.5]']):
-        result = subprocess.run([executable('tsr_sim', 'sim_node'), '--ros-args', *args],
+        result = subprocess.run([executable('tsr_sim', 'sim_node'), '--ros-args',
+                                 '-r', f'__ns:={ros_namespace}', *args],
                                 env=dict(os.environ, ROS_DOMAIN_ID=str(ros_domain)),
                                 capture_output=True, text=True, timeout=30)
         assert result.returncode == 2, result.stderr

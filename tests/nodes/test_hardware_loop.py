@@ -45,7 +45,7 @@ def busy():
         process.wait()
 
 
-def change_state(ros, label, node='/tsr_controller'):
+def change_state(ros, label, node='tsr_controller'):
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState
     ids = {'activate': Transition.TRANSITION_ACTIVATE,
@@ -59,7 +59,7 @@ def reset(ros, x):
     from tsr_msgs.srv import ResetSim
     si = SCALE.state_to_si(np.asarray(x, dtype=float))
     request = ResetSim.Request(theta=si[0], theta_rate=si[1], length=si[2], length_rate=si[3])
-    assert ros.call(ResetSim, '/tsr/reset', request).success
+    assert ros.call(ResetSim, wire.RESET_SERVICE, request).success
 
 
 def loop_summary(watch):
@@ -70,7 +70,7 @@ def loop_summary(watch):
             f'{None if last is None else np.round(watch.states[last], 3)}, simulator status '
             f'{None if status is None else (status.status, status.run, status.holding)}, '
             f'{len(watch.commands)} commands, controller health '
-            f"{(health_of(watch, '/tsr_controller') or ('none',))[:2]}")
+            f"{(health_of(watch, 'tsr_controller') or ('none',))[:2]}")
 
 
 def run_states(run, first=0, last=None):
@@ -118,7 +118,7 @@ def test_the_timed_loop_at_100_hz_settles_from_every_start_and_after_each_reset(
         # below the least swing known from the start, the frontier there is the bound)
         least = table_entry(start)['least_swing']['swing']
         assert settle * dynamics.PAPER_STEP <= 1.5 * frontier_tau(start, max(swing, least))
-    level, _, values = health_of(watch, '/tsr_controller')
+    level, _, values = health_of(watch, 'tsr_controller')
     assert int(values['runs']) == len(starts) - 1 and float(values['compute_median_ms']) < 10
 
 
@@ -260,21 +260,21 @@ def test_stray_states_change_nothing_and_are_an_error_while_they_last(ros, start
     while time.monotonic() < deadline:
         feed.stray.publish(feed.message(np.full(4, np.nan), 13, run=1))
         ros.spin_for(0.1)
-        health = health_of(watch, '/tsr_controller')
+        health = health_of(watch, 'tsr_controller')
         if health is not None:
             levels.append(health[0])
             watch.health.clear()
     assert len(levels) >= 2 and set(levels) == {ERROR}
     # No state at all: a warning once state_timeout has passed.
-    ros.spin_until(lambda: (health_of(watch, '/tsr_controller') or (None, ''))[1].startswith(
+    ros.spin_until(lambda: (health_of(watch, 'tsr_controller') or (None, ''))[1].startswith(
         'no state'), what='the stale-input warning')
-    assert health_of(watch, '/tsr_controller')[0] == WARN
+    assert health_of(watch, 'tsr_controller')[0] == WARN
     # The plant halted (its latched status): an error.
     status_pub = ros.node.create_publisher(SimStatus, wire.SIM_STATUS_TOPIC,
                                            ros_io.LATCHED_QOS)
     status_pub.publish(SimStatus(status=SimStatus.HALTED_OUT_OF_DOMAIN,
                                  message='tumbling at step 99', run=1))
-    ros.spin_until(lambda: (health_of(watch, '/tsr_controller') or (None, ''))[0] == ERROR,
+    ros.spin_until(lambda: (health_of(watch, 'tsr_controller') or (None, ''))[0] == ERROR,
                    what='the error of a halted plant')
-    assert 'halted' in health_of(watch, '/tsr_controller')[1]
+    assert 'halted' in health_of(watch, 'tsr_controller')[1]
     assert lifecycle_state(ros) == 3 and math.isfinite(feed.answers[(1, 11)])

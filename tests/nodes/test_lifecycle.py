@@ -14,13 +14,15 @@ UNCONFIGURED, INACTIVE, ACTIVE = 1, 2, 3
 
 
 class Watch:
-    """What the test sees on the loop: tension commands, simulator statuses, states, and the
-    last /diagnostics status of each node."""
+    """What the test sees on the loop in `namespace` (default: the test's, where `ros` lives):
+    tension commands, simulator statuses, states, and the last /diagnostics status of each
+    node."""
 
-    def __init__(self, ros, namespace='/'):
+    def __init__(self, ros, namespace=None):
         from diagnostic_msgs.msg import DiagnosticArray
         from tsr_msgs.msg import SimStatus, TensionCommand, TsrState
         from tsr_sim import ros_io
+        namespace = self.namespace = namespace or ros.namespace
         self.commands, self.states, self.status, self.health = [], {}, None, {}
         self.holds = []                      # the commands' hold flags
         self.runs = [self.states]
@@ -51,12 +53,12 @@ class Watch:
                                         {kv.key: kv.value for kv in status.values})
 
 
-def lifecycle_state(ros, node='/tsr_controller'):
+def lifecycle_state(ros, node='tsr_controller'):
     from lifecycle_msgs.srv import GetState
     return ros.call(GetState, f'{node}/get_state', GetState.Request()).current_state.id
 
 
-def transition(ros, label, node='/tsr_controller'):
+def transition(ros, label, node='tsr_controller'):
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState
     ids = {'configure': Transition.TRANSITION_CONFIGURE,
@@ -68,6 +70,9 @@ def transition(ros, label, node='/tsr_controller'):
 
 
 def health_of(watch, node):
+    """The last health a node reported on /diagnostics; a relative name is in the watch's
+    namespace."""
+    node = wire.resolve(node, watch.namespace)
     return next((h for name, h in watch.health.items() if name.startswith(f'{node}:')), None)
 
 
@@ -82,10 +87,10 @@ def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, sta
     start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller',
                {'law': 'linear_lqr', 'autostart': False})
     watch = Watch(ros)
-    ros.spin_until(lambda: health_of(watch, '/tsr_controller') is not None, timeout=30.0,
+    ros.spin_until(lambda: health_of(watch, 'tsr_controller') is not None, timeout=30.0,
                    what="the controller's health")
     assert lifecycle_state(ros) == UNCONFIGURED
-    level, message, values = health_of(watch, '/tsr_controller')
+    level, message, values = health_of(watch, 'tsr_controller')
     assert level == b'\x01' and values['lifecycle_state'] == 'unconfigured'
     ros.spin_until(lambda: watch.status is not None and watch.status.step > 20,
                    what='the timed simulator to run')
@@ -97,7 +102,7 @@ def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, sta
     assert transition(ros, 'activate') and lifecycle_state(ros) == ACTIVE
     ros.spin_until(lambda: len(watch.commands) > 20, what='commands once active')
     assert all(step != wire.NO_STEP for step, _ in watch.commands)
-    ros.spin_until(lambda: health_of(watch, '/tsr_controller')[0] == b'\x00',
+    ros.spin_until(lambda: health_of(watch, 'tsr_controller')[0] == b'\x00',
                    what='OK health while commanding')
 
     assert transition(ros, 'deactivate') and lifecycle_state(ros) == INACTIVE
@@ -115,14 +120,14 @@ def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, sta
     assert watch.status.commands_accepted == accepted and watch.status.command_timeouts == 0
 
     # Read at configure: refused while configured, accepted unconfigured, applied there.
-    (refused,) = ros.set_parameters('/tsr_controller', {'law': 'pid'})
+    (refused,) = ros.set_parameters('tsr_controller', {'law': 'pid'})
     assert not refused[0] and 'read at configure' in refused[1]
     assert transition(ros, 'cleanup') and lifecycle_state(ros) == UNCONFIGURED
-    assert ros.set_parameters('/tsr_controller', {'law': 'pid'}) == [(True, '')]
+    assert ros.set_parameters('tsr_controller', {'law': 'pid'}) == [(True, '')]
     assert not transition(ros, 'configure') and lifecycle_state(ros) == UNCONFIGURED
-    ros.spin_until(lambda: health_of(watch, '/tsr_controller')[0] == b'\x02',
+    ros.spin_until(lambda: health_of(watch, 'tsr_controller')[0] == b'\x02',
                    what='an ERROR on /diagnostics')
-    assert "unknown law 'pid'" in health_of(watch, '/tsr_controller')[1]
+    assert "unknown law 'pid'" in health_of(watch, 'tsr_controller')[1]
 
 
 def test_a_reset_run_repeats_the_first(ros, start_node):
@@ -165,15 +170,18 @@ def test_a_tumbling_run_halts_and_every_node_reports_health(ros, start_node, tmp
     ros.spin_until(lambda: watch.status is not None and watch.status.status == 1,
                    timeout=60.0, what='the tumbling halt')
     assert 'tumbling' in watch.status.message
-    ros.spin_until(lambda: (health_of(watch, '/tsr_sim') or (None,))[0] == b'\x02',
+    ros.spin_until(lambda: (health_of(watch, 'tsr_sim') or (None,))[0] == b'\x02',
                    what="the simulator's ERROR")
-    assert 'tumbling' in health_of(watch, '/tsr_sim')[1]
-    ros.spin_until(lambda: health_of(watch, '/tsr_recorder') is not None
-                   and health_of(watch, '/tsr_controller') is not None,
+    assert 'tumbling' in health_of(watch, 'tsr_sim')[1]
+    # The controller's first report may come before its first command: wait for one after.
+    ros.spin_until(lambda: health_of(watch, 'tsr_recorder') is not None
+                   and int((health_of(watch, 'tsr_controller') or (0, '', {}))[2].get(
+                       'commands', 0)) >= 1,
                    what="the other nodes' health")
-    _, _, recorded = health_of(watch, '/tsr_recorder')
-    assert int(recorded['count /tsr/state']) >= 1 and 'bag' in recorded
-    _, _, control = health_of(watch, '/tsr_controller')
+    _, _, recorded = health_of(watch, 'tsr_recorder')
+    state_topic = wire.resolve(wire.STATE_TOPIC, ros.namespace)
+    assert int(recorded[f'count {state_topic}']) >= 1 and 'bag' in recorded
+    _, _, control = health_of(watch, 'tsr_controller')
     assert control['law'] == 'linear_lqr' and int(control['commands']) >= 1
     assert float(control['compute_median_ms']) > 0.0
 

@@ -30,9 +30,9 @@ def shipped_copy(node, tmp_path, **changes):
 
 
 def test_the_shipped_files_apply_under_a_namespace(ros, start_node, tmp_path):
-    """Keyed /**/<node>, each shipped file applies to its node started under /tsr1 (rcl
+    """Keyed /**/<node>, each shipped file applies to its node started under a namespace (rcl
     matches a bare node name only to the node in the root namespace)."""
-    namespace = '/tsr1'
+    namespace = ros.namespace
     bags = tmp_path / 'bags'
     changes = {'tsr_sim': {'mass': 21.0}, 'tsr_controller': {'law': 'linear_lqr'},
                'tsr_recorder': {'output_dir': str(bags), 'bag_name': 'namespaced'}}
@@ -74,9 +74,9 @@ def test_set_parameters_are_applied_or_refused(ros, start_node, tmp_path):
     assert max(commands) > 1.5       # linear_lqr from the paper's start: up to ~8.7 N
 
     # The safe tension must stay within the clamp: lowered first, then the clamp.
-    assert ros.set_parameters('/tsr_controller', {'max_tension': 1.0})[0][0] is False
-    assert ros.set_parameters('/tsr_controller', {'safe_tension': 1.0}) == [(True, '')]
-    assert ros.set_parameters('/tsr_controller', {'max_tension': 1.0}) == [(True, '')]
+    assert ros.set_parameters('tsr_controller', {'max_tension': 1.0})[0][0] is False
+    assert ros.set_parameters('tsr_controller', {'safe_tension': 1.0}) == [(True, '')]
+    assert ros.set_parameters('tsr_controller', {'max_tension': 1.0}) == [(True, '')]
     # Commands already on the wire when the clamp changed may still arrive: wait for the first
     # one at the new clamp, then every later one stays within it.
     commands.clear()
@@ -87,20 +87,20 @@ def test_set_parameters_are_applied_or_refused(ros, start_node, tmp_path):
     assert max(commands) <= 1.0
 
     refused = {
-        '/tsr_controller': {'law': 'nonsense_law', 'safe_tension': 5.0},  # > max_tension
-        '/tsr_sim': {'mass': 21.0, 'mode': 'timed'},
-        '/tsr_recorder': {'output_dir': str(tmp_path / 'elsewhere')}}
+        'tsr_controller': {'law': 'nonsense_law', 'safe_tension': 5.0},  # > max_tension
+        'tsr_sim': {'mass': 21.0, 'mode': 'timed'},
+        'tsr_recorder': {'output_dir': str(tmp_path / 'elsewhere')}}
     for node, values in refused.items():
         for name, value in values.items():
             ((successful, reason),) = ros.set_parameters(node, {name: value})
             assert not successful and reason, (node, name)
             assert ros.get_parameters(node, [name])[name] != value
-    ((_, reason),) = ros.set_parameters('/tsr_sim', {'mass': 21.0})
+    ((_, reason),) = ros.set_parameters('tsr_sim', {'mass': 21.0})
     assert 'read-only' in reason
-    ((_, reason),) = ros.set_parameters('/tsr_controller', {'law': 'nonsense_law'})
+    ((_, reason),) = ros.set_parameters('tsr_controller', {'law': 'nonsense_law'})
     assert 'read at configure' in reason
-    for node, values in {'/tsr_sim': {'progress_every': 7},
-                         '/tsr_recorder': {'flush_period': 0.5}}.items():
+    for node, values in {'tsr_sim': {'progress_every': 7},
+                         'tsr_recorder': {'flush_period': 0.5}}.items():
         assert ros.set_parameters(node, values) == [(True, '')] * len(values)
         assert ros.get_parameters(node, list(values)) == values
     assert not (tmp_path / 'elsewhere').exists()
@@ -125,9 +125,9 @@ def test_every_number_has_a_range(ros, start_node, tmp_path):
         start_node(*EXECUTABLES[node], node, params)
     numeric = (ParameterType.PARAMETER_INTEGER, ParameterType.PARAMETER_DOUBLE)
     for node in EXECUTABLES:
-        names = ros.call(ListParameters, f'/{node}/list_parameters',
+        names = ros.call(ListParameters, f'{node}/list_parameters',
                          ListParameters.Request()).result.names
-        descriptors = ros.call(DescribeParameters, f'/{node}/describe_parameters',
+        descriptors = ros.call(DescribeParameters, f'{node}/describe_parameters',
                                DescribeParameters.Request(names=names)).descriptors
         unbounded = [d.name for d in descriptors if d.type in numeric
                      and not (d.integer_range or d.floating_point_range)]

@@ -24,10 +24,12 @@ def tension_law(x):
 class SimDriver:
     """Test-side controller: answers every state with tension_law, records what it sees."""
 
-    def __init__(self, ros, answer=True, namespace='/'):
+    def __init__(self, ros, answer=True, namespace=None):
+        """namespace: the simulator's (default: the test's, where `ros` lives)."""
         from tsr_msgs.msg import SimStatus, TensionCommand, TsrState
         from tsr_sim import ros_io
         self.ros, self.answer = ros, answer
+        namespace = namespace or ros.namespace
         self.states = {}
         self.status = None
         node = ros.node
@@ -111,7 +113,7 @@ def test_reset_service_restarts_from_the_requested_state(ros, start_node):
     driver.answer = False
     ros.spin_for(0.3)
 
-    client = ros.node.create_client(ResetSim, wire.RESET_SERVICE)
+    client = ros.node.create_client(ResetSim, wire.RESET_SERVICE)    # the test's namespace
     assert client.wait_for_service(timeout_sec=10.0)
     target = np.array([0.1, -0.2, -0.5, 0.3])
     si = SCALE.state_to_si(target)
@@ -143,8 +145,8 @@ def test_a_timed_run_waits_for_its_first_command_and_holds_without_commands(ros,
     start_node('tsr_sim', 'sim_node', 'tsr_sim_now',
                dict(SIM_PARAMS, mode='timed', rate_hz=200.0, command_timeout=0.2,
                     clock_start='now', initial_state=[0.0, 0.0, -0.5, 0.3]),
-               namespace='/now')
-    now = SimDriver(ros, answer=False, namespace='/now')
+               namespace=f'{ros.namespace}_now')
+    now = SimDriver(ros, answer=False, namespace=f'{ros.namespace}_now')
     ros.spin_until(lambda: now.status is not None and now.status.holding
                    and now.status.command_timeouts == 1, what='the hold on a command timeout')
     ros.spin_until(lambda: now.states and max(now.states) > 200, what='time to advance held')
@@ -159,7 +161,7 @@ def test_the_node_declares_the_parameters_of_the_tables_and_nothing_else(ros, st
     from rcl_interfaces.srv import ListParameters
     from tsr_sim.plant import PLANT_PARAMETERS, SCALE_PARAMETERS, SIMULATOR_PARAMETERS
     start_node('tsr_sim', 'sim_node', 'tsr_sim', SIM_PARAMS)
-    client = ros.node.create_client(ListParameters, '/tsr_sim/list_parameters')
+    client = ros.node.create_client(ListParameters, 'tsr_sim/list_parameters')
     assert client.wait_for_service(timeout_sec=10.0)
     future = client.call_async(ListParameters.Request())
     ros.spin_until(future.done, what='the parameter list')

@@ -29,12 +29,27 @@ def commands(count=300, seed=3):
 
 
 def test_default_variant_is_the_nominal_plant():
+    """...to the last bit: the variants step the plant's own equations and RK4."""
     sequence = commands()
     state = run_open_loop(variants.PlantVariant(), START, sequence)
     x = START.copy()
     for command in sequence:
+        x = dynamics.planar_step(x, command, H, 10)
+    np.testing.assert_array_equal(state[:4], x)
+    x = START.copy()
+    for command in sequence:
         x = dynamics.rk4_step(x, command, H, 10)
     np.testing.assert_allclose(state[:4], x, rtol=0.0, atol=1e-12)
+
+
+def test_the_variants_hold_no_equations_or_integrator_of_their_own():
+    """One definition of the plant (`dynamics.planar_rates`, `dynamics.rk4`): the variants'
+    module neither writes the equations of motion again nor integrates."""
+    import inspect
+    source = inspect.getsource(variants)
+    for copy in ('3.0 * ', 'cos_t * cos_t', 'k1 =', 'k4 =', '/ 6.0'):
+        assert copy not in source, copy
+    assert 'dynamics.planar_rates(' in source and 'dynamics.rk4(' in source
 
 
 def test_vanishing_eccentricity_reduces_to_the_nominal_plant():

@@ -25,10 +25,10 @@ from tsr_sim.plant import plant_parameters
 from tsr_koopman_ctrl.bag import read_loop
 from tsr_koopman_ctrl.bag.writer import new_bag_name
 from tsr_koopman_ctrl.control.registry import (CONTROLLERS, DEFAULT_LAW, law_class,
-                                               NODE_SECTIONS, preset)
+                                               NODE_SECTIONS, preset, settings_class)
 from tsr_koopman_ctrl.control.settings import build
 from tsr_koopman_ctrl.evaluation import PAPER_START, run_figures
-from tsr_koopman_ctrl.launcher import NodeProcess, random_domain_id
+from tsr_koopman_ctrl.launcher import NodeProcess, reserve_domain
 from tsr_koopman_ctrl.model import LiftedModel
 
 
@@ -58,11 +58,6 @@ class RunResult:
     @property
     def halted(self):
         return bool(self.figures['halted'])
-
-
-def settings_class(section):
-    """The settings class of a settings section: a law's, the observer's or the excitation's."""
-    return NODE_SECTIONS.get(section) or law_class(section).Settings
 
 
 def merged_settings(law, settings=None, model=None, preset_name=None):
@@ -99,7 +94,8 @@ class Deployment:
     deployment as fast as the law computes, deterministic) or 'timed' (the hardware rehearsal:
     `rate_hz` steps per wall second whatever the controller does, the newest state answered);
     namespace: the nodes' ROS namespace; domain: the
-    ROS_DOMAIN_ID (default: a random free one); bags: where the bag goes; logs: where the node
+    ROS_DOMAIN_ID (default: one no other process on the host uses, `launcher.reserve_domain`,
+    reserved until stop()); bags: where the bag goes; logs: where the node
     logs go (default: a new temporary directory); name: the bag's name; timeout: wall seconds
     before the run is abandoned; progress: the simulator's progress lines on this console.
     Bad arguments are one ValueError line, raised here, before any process starts.
@@ -134,7 +130,6 @@ class Deployment:
             raise ValueError(f'rate_hz must be > 0, got {rate_hz}')
         self.mode, self.rate_hz = mode, float(rate_hz)
         self.namespace = checked_namespace(namespace)
-        self.domain = domain if domain is not None else random_domain_id()
         # Distinct for deployments started in the same second; never an existing directory.
         self.name = name or new_bag_name(bags, f'deploy_{law}')
         self.bags = bags
@@ -145,6 +140,9 @@ class Deployment:
         self.timeout = float(timeout)
         self.progress = progress
         self.processes = []
+        # Last: reserved only once every argument is good, released by stop().
+        self.reservation = reserve_domain() if domain is None else None
+        self.domain = domain if domain is not None else self.reservation.id
 
     def node_parameters(self):
         """{node: parameters} of the three processes (`--params-file` of each)."""
@@ -195,6 +193,8 @@ class Deployment:
         """Stop every node (the simulator first, the recorder last: its bag closes)."""
         for process in reversed(self.processes):
             process.stop()
+        if self.reservation is not None:
+            self.reservation.release()
 
     def run(self):
         """Start, wait for the end of the run, stop; the RunResult read from the bag. On Ctrl-C

@@ -10,41 +10,51 @@
         run = loop.finish()                             # waits for the end, reads the bag
         assert run.figures['settle_tau'] is not None
 
-Fixtures (each test gets a DDS domain of its own, and everything it starts is stopped at
-teardown, also when the test fails):
-  ros_domain    the ROS_DOMAIN_ID of the test session (ROS_DOMAIN_ID when set, else one of
-                1..101 from the process id)
-  ros           a `RosClient`: an rclpy node in this process on that domain (spin_until,
-                spin_for, call a service, get and set a node's parameters)
+Fixtures (each test gets a DDS domain and a ROS namespace of its own, and everything it starts
+is stopped at teardown, also when the test fails):
+  ros_domain    the test's ROS_DOMAIN_ID: one that no other process on the host uses,
+                reserved for the test (`launcher.reserve_domain`; TSR_TEST_DOMAIN=N pins
+                every test to N, unchecked, to watch a test with a ROS tool)
+  ros_namespace the test's ROS namespace ('/t_' and the test's name): where `start_node`
+                and `tsr_loop` put their nodes and the `ros` client's node lives, so that
+                relative names ('tsr/reset', 'tsr_controller/get_parameters') resolve alike
+  ros           a `RosClient`: an rclpy node in this process on that domain and in that
+                namespace (spin_until, spin_for, call a service, get and set a node's
+                parameters)
   start_node    start_node(package, executable, name, params, namespace=...) -> NodeProcess:
-                an installed node as its own process, its log in the test's tmp_path
+                an installed node as its own process (in the test's namespace unless one is
+                given; '/' for the root namespace), its log in the test's tmp_path
   tsr_loop      tsr_loop(law=..., steps=..., namespace=..., **Deployment options) -> a
-                running loop (`deployment.Deployment`) whose simulator status the `ros` client
-                follows; .finish() waits for the end and returns the RunResult read from the
-                bag
+                running loop (`deployment.Deployment`, the first in the test's namespace)
+                whose simulator status the `ros` client follows; .finish() waits for the end
+                and returns the RunResult read from the bag
 
 Tests that use them start processes: mark them (this project's own use `@pytest.mark.ros`).
 """
 
 import os
+import re
 import time
 
 import pytest
 
-from tsr_koopman_ctrl.launcher import FREE_DOMAIN_IDS, NodeProcess
+from tsr_koopman_ctrl.launcher import NodeProcess, reserve_domain
 
 
 class RosClient:
-    """An rclpy node in the test process, on the test's domain (its own rclpy context)."""
+    """An rclpy node in the test process, on the test's domain (its own rclpy context), in
+    `namespace` (relative names it uses resolve there)."""
 
-    def __init__(self, domain):
+    def __init__(self, domain, namespace=None):
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         self.rclpy = rclpy
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain)
-        self.node = rclpy.create_node('test_client', context=self.context)
+        self.namespace = namespace or '/'
+        self.node = rclpy.create_node('test_client', namespace=self.namespace,
+                                      context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
@@ -129,52 +139,73 @@ class RunningLoop:
         return self.deployment.result()
 
 
-@pytest.fixture(scope='session')
+@pytest.fixture
 def ros_domain():
-    """A DDS domain of the test session's own: ROS_DOMAIN_ID when the caller set one, else one
-    of the launcher's free domains (1..101) from the process id, so parallel runs and other ROS
-    graphs do not interfere."""
-    for name in ('ROS_DOMAIN_ID', 'TSR_TEST_DOMAIN'):
-        if os.environ.get(name):
-            return int(os.environ[name])
-    return FREE_DOMAIN_IDS[os.getpid() % len(FREE_DOMAIN_IDS)]
+    """The test's DDS domain: one no other process on the host uses (`reserve_domain`: no
+    bound port of the domain, no lock of another of this project's processes, not the
+    caller's ROS_DOMAIN_ID), reserved until the test's teardown is over. TSR_TEST_DOMAIN pins
+    every test to one domain, unchecked (to watch a test from a ROS tool on that domain)."""
+    if os.environ.get('TSR_TEST_DOMAIN'):
+        yield int(os.environ['TSR_TEST_DOMAIN'])
+        return
+    with reserve_domain() as reservation:
+        yield reservation.id
 
 
 @pytest.fixture
-def ros(ros_domain):
-    client = RosClient(ros_domain)
+def ros_namespace(request):
+    """The test's ROS namespace: '/t_' and the test's name, as a ROS name allows it."""
+    name = re.sub(r'[^0-9a-zA-Z]+', '_', request.node.name).strip('_').lower()
+    return '/t_' + name[:60].rstrip('_')
+
+
+@pytest.fixture
+def ros(ros_domain, ros_namespace):
+    client = RosClient(ros_domain, ros_namespace)
     yield client
     client.close()
 
 
 @pytest.fixture
-def start_node(ros_domain, tmp_path):
-    """Factory: start_node(package, executable, name, params, ...) -> NodeProcess; all stopped
-    at teardown. Logs go to tmp_path/<name>.log."""
+def start_node(ros_domain, ros_namespace, tmp_path):
+    """Factory: start_node(package, executable, name, params, ...) -> NodeProcess, in the
+    test's namespace unless `namespace` is given ('/': the root namespace); all stopped at
+    teardown (SIGINT, SIGKILL after a grace period). Logs go to tmp_path/<name>.log."""
     started = []
 
     def start(package, exe, name, params=None, extra_args=(), namespace=None, cwd=None):
         process = NodeProcess(package, exe, name, params, domain_id=ros_domain,
                               log_path=str(tmp_path / f'{name}.log'), extra_args=extra_args,
-                              namespace=namespace, cwd=cwd)
+                              namespace=namespace or ros_namespace, cwd=cwd)
         started.append(process)
         return process
 
     yield start
-    for process in started:
-        process.stop()
+    stop_all(started)
+
+
+def stop_all(processes):
+    """Stop every process, each even if stopping another raised; the first error after."""
+    errors = []
+    for process in processes:
+        try:
+            process.stop()
+        except BaseException as error:      # a KeyboardInterrupt too: the others still stop
+            errors.append(error)
+    if errors:
+        raise errors[0]
 
 
 @pytest.fixture
-def tsr_loop(ros_domain, ros, tmp_path):
+def tsr_loop(ros_domain, ros_namespace, ros, tmp_path):
     """Factory: tsr_loop(law=..., steps=..., **options) -> RunningLoop, the three nodes
-    started (`deployment.Deployment` options; bags and logs in tmp_path, a namespace of the
-    test's own by default); stopped at teardown."""
+    started (`deployment.Deployment` options; bags and logs in tmp_path; the first loop in the
+    test's namespace, later ones in '<namespace>_1', ...); stopped at teardown."""
     from tsr_koopman_ctrl.deployment import Deployment
     loops = []
 
     def start(law='linear_lqr', steps=300, namespace=None, **options):
-        namespace = namespace or f'/test{len(loops)}'
+        namespace = namespace or (f'{ros_namespace}_{len(loops)}' if loops else ros_namespace)
         deployment = Deployment(law, steps=steps, namespace=namespace, domain=ros_domain,
                                 bags=str(tmp_path / 'bags'), logs=str(tmp_path / 'logs'),
                                 progress=False, **options)
@@ -184,5 +215,4 @@ def tsr_loop(ros_domain, ros, tmp_path):
         return running
 
     yield start
-    for deployment in loops:
-        deployment.stop()
+    stop_all(loops)

@@ -51,13 +51,21 @@ def equilibrium_state(dim=PLANAR_DIM):
     return np.zeros(dim)
 
 
-def planar_rates(theta, rate, offset, speed, u, sin=math.sin, cos=math.cos):
+def planar_rates(theta, rate, offset, speed, u, sin=math.sin, cos=math.cos,
+                 frame_rate=1.0, gravity=1.0, frame_acceleration=0.0):
     """The planar equations, written once: d/dtau of [theta, theta', l - 1, l'] under tension
-    u, for floats, numpy arrays or CasADi symbols alike (give their `sin` and `cos`)."""
-    length, w = offset + 1.0, rate + 1.0
+    u, for floats, numpy arrays or CasADi symbols alike (give their `sin` and `cos`).
+
+    The orbit's terms default to the circular orbit's: the local frame turning at the rate 1
+    (`frame_rate`, nu'), not accelerating (`frame_acceleration`, nu''), under the gravity
+    gradient 1 (`gravity`, mu / (r^3 n^2)); an eccentric orbit gives its own
+    (`tsr_sim.variants`). The defaults leave the circular equations' arithmetic exactly as it
+    is (a multiplication by 1.0, a subtraction of 0.0)."""
+    length, w = offset + 1.0, rate + frame_rate
     sin_t, cos_t = sin(theta), cos(theta)
-    return (rate, -2.0 * (speed / length) * w - 3.0 * sin_t * cos_t,
-            speed, length * (w * w + 3.0 * cos_t * cos_t - 1.0) - u)
+    return (rate,
+            -2.0 * (speed / length) * w - gravity * 3.0 * sin_t * cos_t - frame_acceleration,
+            speed, length * (w * w + gravity * 3.0 * cos_t * cos_t - gravity) - u)
 
 
 def rk4(rates, state, u, dt, substeps, path=None):

@@ -67,50 +67,48 @@ def applied_tension(variant, actuator):
     return max(0.0, variant.actuator_gain * actuator + variant.actuator_bias)
 
 
-def augmented_derivative(variant, state, command):
-    """d/dtau of [x (4 or 6), a, nu] under the command u (held)."""
-    x, actuator, anomaly = state[:-2], state[-2], state[-1]
+def orbit_terms(variant, anomaly):
+    """(nu', mu / (r^3 n^2), nu'') at the true anomaly `anomaly`: the frame's rate, the gravity
+    gradient and the frame's acceleration `dynamics.planar_rates` takes (the circular orbit's
+    (1, 1, 0) when e = 0)."""
+    e = variant.eccentricity
+    if e == 0.0:
+        return 1.0, 1.0, 0.0
+    one_e = 1.0 + e * math.cos(anomaly)
+    gravity = one_e ** 3 / (1.0 - e * e) ** 3
+    return one_e ** 2 / (1.0 - e * e) ** 1.5, gravity, -2.0 * e * math.sin(anomaly) * gravity
+
+
+def augmented_rates(variant, *state):
+    """d/dtau of the components of [x (4 or 6), a, nu] under the command u (held), the last
+    argument: the plant's own equations (`dynamics.planar_rates`, `dynamics.derivative`) with
+    the actuator's tension and the orbit's terms."""
+    *x, actuator, anomaly, command = state
     if variant.actuator_lag > 0.0:
         actuator_rate = (command - actuator) / variant.actuator_lag
     else:   # no lag: the actuator is the command itself
         actuator, actuator_rate = command, 0.0
     u = applied_tension(variant, actuator)
-    e = variant.eccentricity
-    if x.size != dynamics.PLANAR_DIM:
-        return np.r_[dynamics.derivative(x, u), actuator_rate, 1.0]
-    if e == 0.0:   # the nominal equations (in scalars: this runs 40 times a step)
-        anomaly_rate, k, anomaly_acc = 1.0, 1.0, 0.0
-    else:
-        one_e = 1.0 + e * math.cos(anomaly)
-        anomaly_rate = one_e ** 2 / (1.0 - e * e) ** 1.5
-        k = one_e ** 3 / (1.0 - e * e) ** 3
-        anomaly_acc = -2.0 * e * math.sin(anomaly) * k
-    theta, theta_rate, length_rate = x[0], x[1], x[3]
-    length = x[2] + 1.0
-    w = anomaly_rate + theta_rate
-    sin_t, cos_t = math.sin(theta), math.cos(theta)
-    theta_acc = -anomaly_acc - 2.0 * length_rate / length * w - 3.0 * k * sin_t * cos_t
-    length_acc = length * (w * w + k * (3.0 * cos_t * cos_t - 1.0)) - u
-    return np.array([theta_rate, theta_acc, length_rate, length_acc, actuator_rate,
-                     anomaly_rate])
+    if len(x) != dynamics.PLANAR_DIM:
+        return (*dynamics.derivative(np.array(x), u), actuator_rate, 1.0)
+    frame_rate, gravity, frame_acceleration = orbit_terms(variant, anomaly)
+    return (*dynamics.planar_rates(*x, u, frame_rate=frame_rate, gravity=gravity,
+                                   frame_acceleration=frame_acceleration),
+            actuator_rate, frame_rate)
 
 
 def step(variant, state, command, h=dynamics.PAPER_STEP, substeps=10):
-    """Advance [x, a, nu] one sample h with the command held: RK4 with `substeps`."""
+    """Advance [x, a, nu] one sample h with the command held: the plant's RK4 (`dynamics.rk4`)
+    with `substeps`."""
     state = np.array(state, dtype=float)
     if variant.actuator_lag == 0.0:
         state[-2] = command
     if variant.eccentricity > 0.0 and state.size - 2 != dynamics.PLANAR_DIM:
         raise ValueError('the eccentric-orbit variant is planar only')
-    dt = h / substeps
     with np.errstate(all='ignore'):
         try:
-            for _ in range(substeps):
-                k1 = augmented_derivative(variant, state, command)
-                k2 = augmented_derivative(variant, state + 0.5 * dt * k1, command)
-                k3 = augmented_derivative(variant, state + 0.5 * dt * k2, command)
-                k4 = augmented_derivative(variant, state + dt * k3, command)
-                state = state + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+            return np.array(dynamics.rk4(lambda *v: augmented_rates(variant, *v),
+                                         tuple(float(v) for v in state), float(command), h,
+                                         substeps))
         except (ValueError, OverflowError, ZeroDivisionError):   # left the domain mid-step
-            state = np.full_like(state, np.nan)
-    return state
+            return np.full_like(state, np.nan)

@@ -21,9 +21,9 @@ from tsr_sim import dynamics
 from tsr_koopman_ctrl.commands import cli
 from tsr_koopman_ctrl.control import CONTROLLERS
 from tsr_koopman_ctrl.control.registry import DEFAULT_LAW
-from tsr_koopman_ctrl.control.settings import parse_value
+from tsr_koopman_ctrl.control.settings import parse_assignments
 from tsr_koopman_ctrl.deployment import (Deployment, DeploymentError, Interrupted,
-                                         settings_class, summary_table)
+                                         summary_table)
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
 
 
@@ -61,15 +61,16 @@ def parse_args(argv):
                         help='directory the bag is written in')
     parser.add_argument('--namespace', default=None, help='ROS namespace of the three nodes')
     parser.add_argument('--domain', type=cli.DOMAIN_ID, default=None,
-                        help="ROS_DOMAIN_ID (default: a random one in 1..101, not the "
-                             "environment's ROS_DOMAIN_ID)")
+                        help="ROS_DOMAIN_ID (default: one of 1..101 that no other process "
+                             "on this host uses and not the environment's ROS_DOMAIN_ID, "
+                             'reserved for the run)')
     parser.add_argument('--timeout', type=cli.number(above=0), default=900.0,
                         help='wall seconds before the run is abandoned')
     args = parser.parse_args(argv)
     if os.path.abspath(args.out) == os.path.abspath(args.bags):
         parser.error('--out and --bags must differ: a bag directory holds only the bag')
     try:
-        settings = parsed_settings(args.set)
+        settings = parse_assignments(args.set)
         args.deployment = Deployment(
             args.law, settings, model=args.model, preset=args.preset, plant=args.plant,
             x0=args.x0, steps=args.steps, mode=args.mode, rate_hz=args.rate_hz,
@@ -80,19 +81,6 @@ def parse_args(argv):
     deployment = args.deployment
     deployment.logs = os.path.join(args.out, deployment.name)
     return args
-
-
-def parsed_settings(assignments):
-    """{section: {setting: value}} from --set SECTION.SETTING=VALUE."""
-    settings = {}
-    for assignment in assignments:
-        key, sep, text = assignment.partition('=')
-        section, dot, name = key.partition('.')
-        if not (sep and dot):
-            raise ValueError(f'--set takes SECTION.SETTING=VALUE, got {assignment!r}')
-        settings.setdefault(section, {})[name] = parse_value(settings_class(section), name,
-                                                             text)
-    return settings
 
 
 def report(result, directory):

@@ -19,50 +19,17 @@ import sys
 import time
 
 import torch
-from tsr_sim import dynamics
-
-from tsr_koopman_ctrl.learning import dataset as datasets
+from tsr_koopman_ctrl.learning import data, dataset as datasets
 from tsr_koopman_ctrl.learning.trainer import CHECKPOINT, save_model, Trainer
 from tsr_koopman_ctrl.model import model_file, shipped
 from tsr_koopman_ctrl.commands import cli
 
 
-#: Extra sampled data beyond the paper's (not in it): the flag giving the count, the seed offset
-#: from --data-seed, the box of initial states, further sampling settings and what the progress
-#: line calls them.
-EXTRA_BOXES = (
-    ('equilibrium_trajectories', 1, datasets.EQUILIBRIUM_BOX_LOW, datasets.EQUILIBRIUM_BOX_HIGH,
-     {}, 'trajectories near the equilibrium'),
-    ('retrieval_trajectories', 2, datasets.RETRIEVAL_BOX_LOW, datasets.RETRIEVAL_BOX_HIGH, {},
-     'retrieval trajectories'),
-    ('held_tension_trajectories', 3, dynamics.TABLE1_STATE_LOW, dynamics.TABLE1_STATE_HIGH,
-     datasets.HELD_TENSIONS, 'held-tension trajectories'))
-
-
 def load_data(args):
-    parts = [datasets.load(path) for path in args.data]
-    for flag, seed_offset, low, high, settings, label in EXTRA_BOXES:
-        count = getattr(args, flag)
-        if count > 0:
-            extra, dropped = datasets.sample(datasets.SamplingConfig(
-                trajectories=count, seed=args.data_seed + seed_offset,
-                state_low=tuple(float(v) for v in low), state_high=tuple(float(v) for v in high),
-                **settings))
-            print(f'sampled {len(extra)} {label} ({dropped} dropped)', flush=True)
-            parts.append(extra)
-    if args.trajectories > 0:
-        sampled, dropped = datasets.sample(datasets.SamplingConfig(
-            trajectories=args.trajectories, seed=args.data_seed))
-        print(f'sampled {len(sampled)} trajectories ({dropped} runaways dropped)', flush=True)
-        parts.append(sampled)
-    if not parts:
-        raise ValueError('no training data: give --trajectories > 0 or --data FILE')
-    return datasets.concatenate(parts)
-
-
-def test_set(trajectories, seed):
-    data, _ = datasets.sample(datasets.SamplingConfig(trajectories=trajectories, seed=seed))
-    return data
+    """The training data the flags ask for (`learning.data.training_data`)."""
+    extra = {name: getattr(args, name.replace('-', '_')) for name, *_ in data.EXTRA_BOXES}
+    return data.training_data(args.data, args.trajectories, args.data_seed,
+                              log=lambda line: print(line, flush=True), **extra)
 
 
 def config_from_args(args, base=None):
@@ -163,12 +130,12 @@ def main(argv=None):
         if args.resume and not os.path.exists(os.path.join(args.out, CHECKPOINT)):
             # Said before the data is sampled (a minute), as Trainer.restore would after.
             raise ValueError(f'cannot resume: no {os.path.join(args.out, CHECKPOINT)}')
-        data = load_data(args)
-        test_data = test_set(args.test_trajectories, args.test_seed)
+        training = load_data(args)
+        test_data = data.test_set(args.test_trajectories, args.test_seed)
         trainer = Trainer(config, args.out, args.device, progress=not args.quiet,
                           structure=structure)
         start = time.perf_counter()
-        model = trainer.fit(data, resume=args.resume, init=init)
+        model = trainer.fit(training, resume=args.resume, init=init)
         seconds = time.perf_counter() - start
     except ValueError as error:
         print(f'train: {error}', file=sys.stderr)
@@ -182,8 +149,8 @@ def main(argv=None):
     extra = {}
     if args.init:
         extra['init'] = args.init
-    metadata = save_model(args.out, model, config, trainer, data, test_data, seconds, command,
-                          extra, envelope=datasets.envelope(data))
+    metadata = save_model(args.out, model, config, trainer, training, test_data, seconds,
+                          command, extra, envelope=datasets.envelope(training))
     metrics = metadata['metrics']
     print(f"saved {args.out}: best epoch {trainer.best['epoch']}, test 30-step summed MSE "
           f"{metrics['test']['summed_mse']:.4g}, controllability rank "

@@ -28,6 +28,12 @@ def settings_sections():
     return {**{name: law.Settings for name, law in CONTROLLERS.items()}, **NODE_SECTIONS}
 
 
+def settings_class(section):
+    """The settings class of a settings section: a law's or one of NODE_SECTIONS (ValueError,
+    one line, for an unknown one)."""
+    return NODE_SECTIONS.get(section) or law_class(section).Settings
+
+
 def law_class(name):
     try:
         return CONTROLLERS[name]

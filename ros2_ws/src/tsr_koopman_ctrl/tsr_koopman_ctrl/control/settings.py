@@ -1,6 +1,7 @@
 """Each law's settings, declared once: a frozen dataclass per law whose fields carry their
 description and range. The controller node's parameters (``<law>.<field>``), the tools' CLI flags
-(``--set <law>.<field>=<value>``) and the example config file are all derived from these classes.
+(``--set <law>.<field>=<value>``, read by `parse_assignments`) and the example config file are
+all derived from these classes.
 """
 
 import dataclasses
@@ -161,3 +162,22 @@ def parse_value(settings_class, name, text):
         raise ValueError(f'{law_name(settings_class)}.{name}: cannot read {text!r} as '
                          f'{type(default).__name__}')
     return text
+
+
+def parse_assignments(assignments, section_class=None):
+    """{section: {setting: value}} from 'SECTION.SETTING=VALUE' strings (deploy's --set, the
+    lab's), each value read as its setting's type (`parse_value`) and checked; ValueError, one
+    line, for a malformed assignment, an unknown section or setting, or a bad value.
+    `section_class(section)`: the settings class of a section (default: the registry's
+    `settings_class`: a law's, the observer's, the excitation's or the supervisor's)."""
+    if section_class is None:
+        from tsr_koopman_ctrl.control.registry import settings_class as section_class
+    settings = {}
+    for assignment in assignments:
+        key, sep, text = assignment.partition('=')
+        section, dot, name = key.partition('.')
+        if not (sep and dot):
+            raise ValueError(f'--set takes SECTION.SETTING=VALUE, got {assignment!r}')
+        settings.setdefault(section, {})[name] = parse_value(section_class(section), name,
+                                                             text)
+    return settings

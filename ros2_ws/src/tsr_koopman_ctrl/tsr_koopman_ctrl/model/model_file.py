@@ -7,7 +7,9 @@ A model is a directory::
 
 safetensors cannot carry code, so loading a model never executes anything. The reader checks
 the names and shapes of every tensor against the config and turns any problem (missing, truncated,
-corrupt, wrong shape, non-finite) into one `ModelFileError` line naming the file.
+corrupt, wrong shape, non-finite) into one `ModelFileError` line naming the file. Files that would
+run code when read (a pickle: torch.save's .pt, .pkl; a model.json naming weights elsewhere or a
+loader) are refused unread, in one line that says so (`refuse_code`).
 
 Reading needs numpy and safetensors only, not torch: the controller evaluates the networks in
 numpy (`tsr_koopman_ctrl.model.lifted`).
@@ -32,6 +34,25 @@ RETIRED_OPTIONS = {'scale_free_lifted_loss': False}
 
 class ModelFileError(ValueError):
     """A model that cannot be used; the message is one line naming the file."""
+
+
+#: Files that run code when read: pickles (torch.save, joblib, numpy object arrays) and source.
+CODE_SUFFIXES = ('.pt', '.pth', '.pkl', '.pickle', '.joblib', '.ckpt', '.py')
+#: model.json keys by which another format names its weights or the code that reads them.
+CODE_KEYS = ('weights', 'weights_file', 'loader', 'module', 'class')
+#: How a pickle starts: protocol 2+ (0x80), or the zip archive torch.save writes.
+PICKLE_MAGIC = (b'\x80', b'PK\x03\x04')
+
+
+def refuse_code(meta, meta_path):
+    """ModelFileError, one line, if the model's metadata names weights other than
+    weights.safetensors or code to load them: this reader reads two files by name and runs
+    nothing, so such a model is refused rather than half-read."""
+    for key, value in meta.items():
+        named = isinstance(value, str) and value.lower().endswith(CODE_SUFFIXES)
+        if key in CODE_KEYS or named:
+            raise ModelFileError(f'{meta_path}: {key!r} names {value!r}: a model loads its '
+                                 f'weights from {WEIGHTS_FILE} only and runs no code; refused')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,6 +213,7 @@ def load(directory):
     if not directory.is_dir():
         raise ModelFileError(f'{directory}: no such model directory')
     meta = read_metadata(meta_path)
+    refuse_code(meta, meta_path)
     if not isinstance(meta.get('config'), dict):
         raise ModelFileError(f'{meta_path}: no config object (the KoopmanConfig fields)')
     try:
@@ -219,14 +241,31 @@ def read_metadata(path):
 
 
 def read_weights(path):
+    """The tensors of a safetensors file (which holds no code: reading it runs nothing)."""
     from safetensors import SafetensorError
     from safetensors.numpy import load_file
     try:
         return load_file(str(path))
     except FileNotFoundError:
-        raise ModelFileError(f'{path}: missing')
+        code = sorted(p.name for p in path.parent.iterdir()
+                      if p.suffix.lower() in CODE_SUFFIXES)
+        also = (f' ({", ".join(code)}: a pickle runs code when read; a model is never read '
+                'from one)') if code else ''
+        raise ModelFileError(f'{path}: missing{also}')
     except (SafetensorError, OSError, ValueError) as error:
+        if _starts_like_a_pickle(path):
+            raise ModelFileError(f'{path}: a pickle (torch.save or pickle), not safetensors: '
+                                 'refused unread (a pickle runs code when read)')
         raise ModelFileError(f'{path}: corrupt or truncated ({error})')
+
+
+def _starts_like_a_pickle(path):
+    try:
+        with open(path, 'rb') as f:
+            start = f.read(4)
+    except OSError:
+        return False
+    return start.startswith(PICKLE_MAGIC)
 
 
 def check_tensors(tensors, config, path):
