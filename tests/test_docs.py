@@ -31,3 +31,22 @@ def test_every_relative_link_leads_to_a_file_in_the_repository(document):
 def test_the_link_pattern_finds_links_and_images():
     text = 'see [a](docs/a.md#x) and ![b](b.png), not [c] (d) nor https://e'
     assert LINK.findall(text) == ['docs/a.md#x', 'b.png']
+
+
+#: A path on a particular machine (a home, a scratch or work tree, /tmp): a reader's machine
+#: has none of them. `$TMPDIR/...` and system paths such as /proc are not matched.
+MACHINE_PATH = re.compile(r'(?<![\w$.~/-])/(?:work|tmp|home|Users|root|mnt|scratch)/')
+
+
+@pytest.mark.parametrize('document', DOCUMENTS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_no_page_names_a_path_on_a_particular_machine(document):
+    found = [line.strip() for line in document.read_text().splitlines()
+             if MACHINE_PATH.search(line)]
+    assert not found, f'{document.relative_to(ROOT)} names machine paths: {found}'
+
+
+def test_the_machine_path_pattern():
+    assert MACHINE_PATH.search('cd /work/nmpc') and MACHINE_PATH.search('(/tmp/x)')
+    assert MACHINE_PATH.search('PY=/home/u/.venv/bin/python')
+    assert not MACHINE_PATH.search('$TMPDIR/tsr-dds-domains/1.lock, /proc/net/udp')
+    assert not MACHINE_PATH.search('lab/results/work/x and docs/tmp/y')

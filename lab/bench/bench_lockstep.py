@@ -1,7 +1,8 @@
 """Lockstep closed-loop steps per second over DDS: simulator and controller as two processes.
 
-Runs the main job (sim, controller, recorder) for --steps steps and reads the rate off the
-bag: steps between the first and last state message divided by the log-time span.
+Runs a deployment as the main job does (sim, controller, recorder) for --steps steps, with
+`koopman_mpc` unless --law says otherwise (the main job flies koopman_nmpc), and reads the rate
+off the bag: steps between the first and last state message divided by the log-time span.
 """
 
 import argparse
@@ -19,7 +20,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--steps', type=int, default=3000)
     parser.add_argument('--law', default='koopman_mpc',
-                        help="the law (default the main job's); linear_lqr with "
+                        help='the law (default koopman_mpc, the law of the figures in '
+                        "docs/benchmarks.md; the main job's is koopman_nmpc); linear_lqr with "
                         "--set observer.disturbance=none (~2 us per step) measures the "
                         'transport alone')
     parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',

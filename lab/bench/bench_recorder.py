@@ -56,7 +56,7 @@ def start_recorder(domain, tmp, name, topic=TOPIC, env=None):
 #: The killed recorders talk UDP only. Over Fast DDS's shared-memory transport a participant
 #: started right after another was killed -9 on this host is matched but often gets no data
 #: (eProsima/Fast-DDS#5053, #2811; here 2 of 6 restarts recorded nothing in 3-5 s, 0 of 6 over
-#: UDP): a transport fault, not the recorder's, and the README's reliability section says so.
+#: UDP): a transport fault, not the recorder's, and docs/reliability.md says so.
 KILLED_RECORDER_ENV = {'FASTDDS_BUILTIN_TRANSPORTS': 'UDPv4'}
 
 

@@ -1,4 +1,4 @@
-"""The NMPC's closed-loop figures, both maps: what NMPC_RESULTS.md reports.
+"""The NMPC's closed-loop figures, both maps: what docs/nmpc.md reports.
 
     python lab/bench/nmpc_figures.py nominal    [--law physics_nmpc koopman_nmpc] [--bare]
     python lab/bench/nmpc_figures.py swing0.4   (theta_max 0.4)

@@ -92,7 +92,7 @@ def test_the_mpc_bounds_follow_the_estimated_gain():
 
 def test_modelling_the_actuator_lag_removes_the_lag_limit_cycle():
     """(With the untuned MPC: the tuned one, horizon 3 and a heavy input weight, takes 1.18x
-    its nominal time with the lag modelled, README.)"""
+    its nominal time with the lag modelled.)"""
     from tsr_koopman_ctrl.control.registry import preset
     untuned = preset('untuned')['koopman_mpc']
     slow = {'actuator_lag': 0.15}

@@ -226,7 +226,7 @@ def print_usage(node_class, doc):
     print(f'{summary}\n\nusage: <executable> [--ros-args [-p NAME:=VALUE ...] '
           f'[--params-file FILE] [-r __ns:=/NAMESPACE] [-r __node:=NAME]]\n\n'
           f'Node name {name}. `ros2 param describe` lists every parameter with its '
-          'description, range and whether it is read-only; the README has the tables.')
+          'description, range and whether it is read-only; docs/nodes.md has the tables.')
 
 
 #: Math threads a node uses unless its `threads` parameter says otherwise: one, so that a node

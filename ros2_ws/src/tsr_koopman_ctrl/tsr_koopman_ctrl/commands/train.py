@@ -125,7 +125,8 @@ def main(argv=None):
             init, base, _ = model_file.load(shipped.resolve(args.init))
         config = config_from_args(args, base)
         structure = structure_from_args(args)
-        # --resume continues the run in --out, finished or not (README: with more epochs).
+        # --resume continues the run in --out, finished or not, also with more epochs
+        # (docs/learning.md).
         model_file.check_free(args.out, args.overwrite or args.resume)
         if args.resume and not os.path.exists(os.path.join(args.out, CHECKPOINT)):
             # Said before the data is sampled (a minute), as Trainer.restore would after.

@@ -39,7 +39,7 @@ Also in the QP: the tension bounds are the felt range the offset-free wrapper se
 (`felt_range`), and a total-variation term rate_weight * sum_j m_u(u_j - u_{j-1}) (u_{-1} the
 tension flown last step, m_u the 1-norm smoothed by rate_smoothing, majorised the same way):
 without it the default observer, which reads a 0.05-tau actuator lag as a fast gain change,
-and this law's high gain near the target limit-cycle (NMPC_RESULTS.md, target 4).
+and this law's high gain near the target limit-cycle (docs/nmpc.md).
 
 The first step, and a step whose QP fails or whose nodes leave the domain (a fallback), is a
 cold start: the linearised LQR law (Q = I, R = 1) flown on the map, refined by up to

@@ -24,7 +24,7 @@ come from forward differences of F on one batched call, so any predictor works.
 Optional `actuator_lag_tau` = T > 0 adds the actuator's tension a as a state (s = [x, a, d]):
 a+ = u + (a - u) exp(-h / T), and F is driven by phi of a's mean over the sample. Without it
 an actuator lag is read as a fast-moving d, which with the gain model and lags >= 0.1 tau sets up
-a limit cycle between d and the lag (README, offset-free control).
+a limit cycle between d and the lag (docs/robustness.md).
 """
 
 import numpy as np

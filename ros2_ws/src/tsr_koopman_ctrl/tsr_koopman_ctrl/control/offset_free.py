@@ -10,7 +10,7 @@ leaves an offset. A law with tension bounds of its own (koopman_mpc, the NMPC) g
 the felt tensions the actuator can reach, [phi(0), phi(u_max)], so its constraints stay the real
 actuator's. The observer is told the clamped command that was sent (anti-windup for free).
 
-Why not an integrator on l - 1 for the linear laws: measured (README, offset-free control), the
+Why not an integrator on l - 1 for the linear laws: measured (docs/robustness.md), the
 observer-wrapped linear LQR is as fast as the LQR on the nominal plant and settles in every
 disturbed case, while the best integrator (band 0.2, weight 3) cost up to 1.26x and a larger
 swing.

@@ -192,8 +192,9 @@ class RecorderNode(Node):
         return sorted(t for t in self.silence_warned if not self.writer.topic_counts.get(t))
 
     def diagnose(self):
-        """Health (README, *Diagnostics*): WARN when a matched topic stays silent or, on sim
-        time, no /clock has come yet; OK otherwise. Per topic its message count."""
+        """Health (docs/nodes.md, *Health on /diagnostics*): WARN when a matched topic stays
+        silent or, on sim time, no /clock has come yet; OK otherwise. Per topic its message
+        count."""
         writer = self.writer
         since_flush = (time.monotonic() - writer.last_flush_wall
                        if writer.last_flush_wall is not None else '')
@@ -211,7 +212,7 @@ class RecorderNode(Node):
     def check_silence(self):
         """A matched topic that stays silent is logged once: its publisher sends nothing, or
         the transport delivers nothing (Fast DDS shared memory to a recorder started right
-        after one was killed -9 on this host: README, Reliability)."""
+        after one was killed -9 on this host: docs/reliability.md)."""
         if self.silence_warning <= 0.0:
             return
         now = time.monotonic()
