@@ -68,13 +68,17 @@ def part(name, settings, plant, labels, rows):
     return '\n'.join(lines)
 
 
-def main(argv=None):
+def parser():
     p = argparse.ArgumentParser(prog='assurance', description=__doc__.split('\n\n')[0])
     p.add_argument('--parts', nargs='+', default=['nominal', 'swing', 'robust'],
                    choices=('nominal', 'swing', 'robust'))
     p.add_argument('--out', default=os.path.join('lab', 'results', 'assurance'))
     p.add_argument('--page', default=PAGE)
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
     rows, sections = [], []
     cells = 'each cell: settle tau (swing [rad], ratio to the minimum time at that swing)'
     if 'nominal' in args.parts:
