@@ -263,8 +263,7 @@ def raise_priority(node, default):
                        'or an rtprio limit, else a warning', 0, 99)
     if priority:
         try:
-            for thread in sorted(int(t) for t in os.listdir('/proc/self/task')):
-                os.sched_setscheduler(thread, os.SCHED_FIFO, os.sched_param(priority))
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         except (OSError, AttributeError) as err:
             node.get_logger().warning(
                 f'thread_priority {priority}: real-time scheduling refused ({err}); running '
