@@ -91,8 +91,8 @@ def run_states(run, first=0, last=None):
 #: (the first step of a run, a failed QP, taking back from the fallback) takes 125-420 ms, 12-42
 #: periods at 100 Hz, and the supervisor's fallback restarts cold on a failed QP too; a run
 #: whose plan brushes the 0.8-rad bound (nominal swing 0.793) hands over and back, and the
-#: drops snowball. Measured on this 2-core machine: of 7 runs of this test 4 lost a run (a
-#: tumble or the tether past twice its length) or settled later than 1.5x the minimum time.
+#: drops snowball. Measured on this 2-core machine: at least 6 of 10 runs of this test lost a
+#: run (a tumble, the tether past twice its length) or settled later than 1.5x the minimum time.
 REAL_TIME_DEFECT = ('the timed loop at 100 Hz is not robust yet: cold starts of 125-420 ms '
                     'drop states and a run can be lost (docs/supervisor.md)')
 
