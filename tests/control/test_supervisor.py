@@ -75,6 +75,21 @@ def test_one_fault_is_no_reason_two_in_a_row_are():
     assert supervisor.switches == 1
 
 
+def test_a_law_gone_non_finite_is_distrusted_at_once():
+    """NaN fails every comparison: a law whose tension went NaN would stay trusted (and the
+    node would send nothing, step after step) unless the monitor checks for it."""
+    learned = Scripted(2.0)
+    supervisor = Supervisor(learned, Scripted(1.0), takeback_steps=1000)
+    assert flown(supervisor, 2) == [(2.0, LEARNED, '')] * 2
+    learned.tension = float('nan')
+    assert flown(supervisor, 2) == [(1.0, FALLBACK, 'fallback')] * 2
+
+
+def test_more_faults_than_steps_counted_is_refused():
+    with pytest.raises(ValueError, match='fault_count must be <= supervisor.fault_window'):
+        Supervisor(Scripted(2.0), Scripted(1.0), fault_count=3, fault_window=2)
+
+
 def test_a_plan_past_the_swing_bound_is_a_fault():
     over = Scripted(2.0, swing=lambda step: 0.45 if step in (5, 6) else 0.3)
     supervisor = Supervisor(over, Scripted(1.0), takeback_steps=1000)

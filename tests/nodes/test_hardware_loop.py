@@ -326,3 +326,22 @@ def test_stray_states_change_nothing_and_are_an_error_while_they_last(ros, start
                    what='the error of a halted plant')
     assert 'halted' in health_of(watch, 'tsr_controller')[1]
     assert lifecycle_state(ros) == 3 and math.isfinite(feed.answers[(1, 11)])
+
+
+def test_a_controller_stopped_by_a_signal_sends_the_stop(ros, start_node):
+    """Ctrl-C or SIGTERM while active: the stop goes out before the process ends, so the plant
+    holds at once and not at its command timeout."""
+    import signal
+    start_node('tsr_sim', 'sim_node', 'tsr_sim',
+               {'mode': 'timed', 'rate_hz': 100.0, 'progress_every': 0,
+                'initial_state': [0.0, 0.0, -0.02, 0.0]})
+    controller = start_node('tsr_koopman_ctrl', 'controller_node', 'tsr_controller', {})
+    watch = Watch(ros)
+    wait(ros, watch, lambda: watch.status and watch.states and max(watch.states) > 100,
+         timeout=60.0, what='a hundred steps commanded')
+    assert not watch.status.holding
+    timeouts = watch.status.command_timeouts
+    controller.process.send_signal(signal.SIGINT)
+    assert controller.wait(timeout=15) == 0
+    wait(ros, watch, lambda: watch.status.holding, what='the reel hold')
+    assert watch.status.command_timeouts == timeouts

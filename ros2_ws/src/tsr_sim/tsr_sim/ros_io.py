@@ -254,13 +254,13 @@ LOOP_PRIORITY = 50
 
 
 def raise_priority(node, default):
-    """Declare `thread_priority` and put the node's threads (the executor's and the DDS
-    threads that deliver its messages) under SCHED_FIFO at it (0: normal scheduling). Where
-    the system refuses (no CAP_SYS_NICE, no rtprio limit) the node runs on at normal priority
-    with a warning, as ros2_control_node does."""
+    """Declare `thread_priority` and put the node's executor thread under SCHED_FIFO at it (0:
+    normal scheduling; the DDS threads stay at normal priority: all threads at FIFO measured
+    no better). Where the system refuses (no CAP_SYS_NICE, no rtprio limit) the node runs on at
+    normal priority with a warning, as ros2_control_node does."""
     priority = declare(node, 'thread_priority', default, 'real-time (SCHED_FIFO) priority of '
-                       "the node's threads, 1-99 (0: normal scheduling); needs CAP_SYS_NICE "
-                       'or an rtprio limit, else a warning', 0, 99)
+                       "the node's executor thread, 1-99 (0: normal scheduling); needs "
+                       'CAP_SYS_NICE or an rtprio limit, else a warning', 0, 99)
     if priority:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))

@@ -15,7 +15,8 @@ What the monitor watches (each a reason on /diagnostics and in the bag):
 
 - `fallback`, `bound`: the learned law faulted on `fault_count` of the last `fault_window`
   steps, a fault being a step where its optimiser fell back or its plan (a law that has one:
-  `Law.prediction`) breaks its swing bound by more than `bound_tolerance`. One fault is no
+  `Law.prediction`) breaks its swing bound by more than `bound_tolerance`; a non-finite
+  tension, plan or prediction is `fallback` at once. One fault is no
   reason: a single failed QP at a bang-bang switch is part of a nominal deployment; a learned
   model that cannot keep its own plan within the bound faults step after step;
 - `envelope`: the state lies outside the envelope the model was trained on (the model file's
@@ -82,6 +83,11 @@ class Supervisor(Law):
         self.name, self.Settings, self.settings = learned.name, learned.Settings, learned.settings
         self.h, self.u_max, self.model = learned.h, learned.u_max, learned.model
         self.supervisor_settings = build(SupervisorSettings, settings, overrides)
+        if self.supervisor_settings.fault_count > self.supervisor_settings.fault_window:
+            raise ValueError('supervisor.fault_count must be <= supervisor.fault_window (more '
+                             'faults than steps counted would never distrust the law), got '
+                             f'{self.supervisor_settings.fault_count} > '
+                             f'{self.supervisor_settings.fault_window}')
         self.envelope = None
         if self.model is not None and self.model.envelope is not None:
             low, high = (np.asarray(v, dtype=float) for v in self.model.envelope)
@@ -121,7 +127,7 @@ class Supervisor(Law):
             self.learned.observe(x)
         else:
             learned = self.run(self.learned, x)
-            self.monitor = self.judge(x, learned[1])
+            self.monitor = self.judge(x, *learned)
             if self.monitor:
                 self.reasons[self.monitor] += 1
                 self.trusted_steps = 0
@@ -177,10 +183,18 @@ class Supervisor(Law):
         self.switches += 1
         self.trusted_steps = 0
 
-    def judge(self, x, fell_back):
+    def judge(self, x, tension, fell_back):
         """'' if the learned law is trusted this step, else the reason it is not."""
         s = self.supervisor_settings
         plan = self.learned.prediction()
+        missed = self.learned.residual()
+        if not (np.isfinite(tension) and (plan is None or np.all(np.isfinite(plan)))
+                and (missed is None or np.all(np.isfinite(missed)))):
+            # A law gone non-finite (its observer, its plan) is distrusted at once: every
+            # comparison below is False for NaN and would keep it trusted
+            self.faults.append((self.steps, 'fallback'))
+            self.armed = s.arm_steps + 1
+            return 'fallback'
         if fell_back:
             self.faults.append((self.steps, 'fallback'))
         elif plan is not None and (np.abs(plan[:, dynamics.THETA]).max()
@@ -194,7 +208,6 @@ class Supervisor(Law):
         if self.envelope is not None and not (np.all(x >= self.envelope[0])
                                               and np.all(x <= self.envelope[1])):
             return 'envelope'
-        missed = self.learned.residual()
         if missed is not None and np.max(np.abs(missed)) > s.prediction_threshold:
             return 'prediction'
         return ''

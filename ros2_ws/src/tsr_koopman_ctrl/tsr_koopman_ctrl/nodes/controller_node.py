@@ -551,6 +551,15 @@ class ControllerNode(LifecycleNode):
             return Health.WARN, f'no state for {self.state_timeout:g} s: the stop sent', values
         return Health.OK, 'commanding', values
 
+    def close(self):
+        """Process exit (a signal, or `done`): an active controller sends the stop first, as a
+        shutdown transition does, so the plant holds now and not at its command timeout."""
+        if self.active and self.pub is not None:
+            self.publish_stop(ControllerStatus.SAFE_TENSION)
+            self.active = False
+            self.get_logger().info('stopped by a signal while active: the stop sent')
+        self.report()
+
     def report(self):
         """A closing line for people reading the log (tools read the bag, not this)."""
         if self.compute_seconds:
@@ -568,7 +577,7 @@ class ControllerNode(LifecycleNode):
 
 
 def main(args=None):
-    return run_node(ControllerNode, on_exit=ControllerNode.report, args=args,
+    return run_node(ControllerNode, on_exit=ControllerNode.close, args=args,
                     start=ControllerNode.start, priority=LOOP_PRIORITY)
 
 
