@@ -121,11 +121,19 @@ class RunningLoop:
             lambda msg: setattr(self, 'status', msg), ros_io.LATCHED_QOS)
 
     def wait_for_step(self, step, timeout=60.0):
-        """Spin until the simulator reports `step`; TimeoutError with each node's last log
-        lines (what the loop was waiting for) after `timeout` s."""
+        """Spin until the simulator reports `step`, or has finished a run that long (a fast
+        loop can end, and its latched status leave with the process, before this reader has
+        matched); TimeoutError with each node's last log lines (what the loop was waiting
+        for) after `timeout` s."""
+        sim = self.deployment.processes[-1]
+
+        def reached():
+            if self.status is not None and self.status.step >= step:
+                return True
+            return (self.deployment.steps >= step and not sim.running()
+                    and sim.process.returncode == 0)
         try:
-            self.ros.spin_until(lambda: self.status is not None and self.status.step >= step,
-                                timeout=timeout, what=f'step {step} of the loop')
+            self.ros.spin_until(reached, timeout=timeout, what=f'step {step} of the loop')
         except TimeoutError as error:
             seen = ('no status' if self.status is None
                     else f'last status at step {self.status.step}')
