@@ -188,14 +188,11 @@ class Supervisor(Law):
         s = self.supervisor_settings
         plan = self.learned.prediction()
         missed = self.learned.residual()
-        if not (np.isfinite(tension) and (plan is None or np.all(np.isfinite(plan)))
-                and (missed is None or np.all(np.isfinite(missed)))):
-            # A law gone non-finite (its observer, its plan) is distrusted at once: every
-            # comparison below is False for NaN and would keep it trusted
-            self.faults.append((self.steps, 'fallback'))
-            self.armed = s.arm_steps + 1
-            return 'fallback'
-        if fell_back:
+        # A law gone non-finite (its observer, its plan) is distrusted at once: every
+        # comparison below is False for NaN and would keep it trusted
+        non_finite = not (np.isfinite(tension) and (plan is None or np.all(np.isfinite(plan)))
+                          and (missed is None or np.all(np.isfinite(missed))))
+        if fell_back or non_finite:
             self.faults.append((self.steps, 'fallback'))
         elif plan is not None and (np.abs(plan[:, dynamics.THETA]).max()
                                    > self.theta_bound + s.bound_tolerance):
@@ -203,6 +200,8 @@ class Supervisor(Law):
         if self.faults and self.faults[-1][0] == self.steps:
             self.armed = s.arm_steps + 1      # (this step's included)
         self.faults = [(k, why) for k, why in self.faults if k > self.steps - s.fault_window]
+        if non_finite:
+            return 'fallback'
         if len(self.faults) >= s.fault_count:
             return self.faults[-1][1]
         if self.envelope is not None and not (np.all(x >= self.envelope[0])

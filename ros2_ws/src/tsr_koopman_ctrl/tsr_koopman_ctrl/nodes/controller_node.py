@@ -259,9 +259,7 @@ class ControllerNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state):
-        if self.active and self.pub is not None:
-            self.publish_stop(ControllerStatus.SAFE_TENSION)
-            self.get_logger().info('shut down while active: the stop sent')
+        self.stop_if_active('shut down while active')
         self.active, self.law, self.step = False, None, None
         self.lifecycle_state = FINALIZED
         self.done = True          # run_node ends the process
@@ -551,13 +549,17 @@ class ControllerNode(LifecycleNode):
             return Health.WARN, f'no state for {self.state_timeout:g} s: the stop sent', values
         return Health.OK, 'commanding', values
 
-    def close(self):
-        """Process exit (a signal, or `done`): an active controller sends the stop first, as a
-        shutdown transition does, so the plant holds now and not at its command timeout."""
+    def stop_if_active(self, why):
+        """An active controller leaving: the stop, so the plant holds now and not at its
+        command timeout."""
         if self.active and self.pub is not None:
             self.publish_stop(ControllerStatus.SAFE_TENSION)
             self.active = False
-            self.get_logger().info('stopped by a signal while active: the stop sent')
+            self.get_logger().info(f'{why}: the stop sent')
+
+    def close(self):
+        """Process exit (a signal, or `done`): the stop first, as a shutdown transition."""
+        self.stop_if_active('stopped by a signal while active')
         self.report()
 
     def report(self):
