@@ -266,6 +266,65 @@ def test_a_node_off_the_domain_restarts_cold():
     assert law.fallbacks == 1 and np.all(np.isfinite(law.nodes))
 
 
+def test_a_failed_step_of_the_learned_nmpc_cold_starts_on_the_exact_equations(monkeypatch):
+    """The first step's cold start rolls out on the learned map (`cold_guide`); a failed step's
+    on the nominal equations (`recovery_guide`): ~10 ms against 100-400 ms, inside a running
+    loop."""
+    law = KoopmanNmpc(model=RETRIEVAL)
+    assert law.guide is law.map and law.recovery is law.physics_map
+    modelled = KoopmanNmpc(model=RETRIEVAL, recovery_guide='model')
+    assert modelled.recovery is modelled.map
+    guides = []
+    cold_start = law.cold_start
+    monkeypatch.setattr(law, 'cold_start', lambda x, plan=None, count=True, guide=None: (
+        guides.append(guide), cold_start(x, plan, count, guide))[1])
+    x = np.array(PAPER_START)
+    law.compute(x)
+    monkeypatch.setattr(law, 'solve', lambda *args: None)
+    law.compute(x)
+    assert guides == [None, law.physics_map] and law.fallbacks == 1
+
+
+def test_the_warm_up_builds_what_a_failed_step_flies_on():
+    """A failed step's cold start rolls out on the nominal equations' compiled functions:
+    built by the warm-up (at configure), not by the first failure mid-run (~400 ms)."""
+    law = make_controller('koopman_nmpc', supervisor='none')
+    built = law.law.recovery._functions
+    assert not built
+    law.warm_up()
+    counts = tuple(int(c) for c in law.law.counts)
+    assert {('rollout', counts), ('feedback', counts)} <= set(built)
+
+
+def test_an_offered_plan_starts_the_law_without_a_cold_start(monkeypatch):
+    """A law without a plan, offered another NMPC's plan for this state (the supervisor's
+    fallback's), starts with one RTI step from its nodes; if that fails, it is a fallback
+    and a recovery's cold start from the offered plan."""
+    x = np.array([0.2, -0.1, -0.8, 0.6])
+    other, law = PhysicsNmpc(), PhysicsNmpc()
+    other.compute(x)
+    starts = []
+    cold_start = law.cold_start
+    monkeypatch.setattr(law, 'cold_start', lambda x, plan=None, count=True, guide=None: (
+        starts.append(plan), cold_start(x, plan, count, guide))[1])
+    law.start_from(other.guess())
+    u = law.compute(x)
+    assert starts == [] and law.fallbacks == 0 and law.nodes[0] == pytest.approx(x)
+    # one RTI step from the same plan and nodes: the other law's next plan for x
+    assert u == pytest.approx(other.iterate(np.r_[x[None], other.nodes[1:]], other.plan)[0][0])
+    law.reset()
+    solve = law.solve
+    monkeypatch.setattr(law, 'solve', lambda *args: None)
+    law.start_from(other.guess())
+    law.compute(x)
+    assert law.fallbacks == 1 and len(starts) == 1 and starts[0] == pytest.approx(other.plan)
+    monkeypatch.setattr(law, 'solve', solve)
+    law.start_from((np.zeros(3), np.zeros((4, 4))))      # a plan on another grid: no start
+    assert law.offered is None
+    law.compute(x)
+    assert law.offered is None and law.fallbacks == 1
+
+
 @pytest.mark.parametrize('overrides, message', [
     ({'horizon': 0.0}, 'physics_nmpc.horizon must be >= 0.2, got 0.0'),
     ({'q': (1.0, 1.0)}, 'physics_nmpc.q needs 4 numbers'),

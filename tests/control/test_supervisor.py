@@ -132,6 +132,31 @@ def test_the_fallback_plans_only_when_armed_or_flying():
     assert fallback.calls == 4 and fallback.observed == 6
 
 
+def test_the_learned_nmpc_takes_up_again_from_the_fallback_s_plan(monkeypatch):
+    """Back from its rest, the learned NMPC starts from the plan the fallback made for the same
+    state (one RTI step), not cold: a cold start on the learned map costs tens of periods of
+    a 100 Hz loop."""
+    from tsr_koopman_ctrl.control.nmpc import PhysicsNmpc
+    learned, fallback = PhysicsNmpc(), PhysicsNmpc()
+    supervisor = Supervisor(learned, fallback, takeback_steps=3)
+    x = np.array([0.2, -0.1, -0.8, 0.6])
+    supervisor.compute(x)                 # the run's first step: cold
+    solve = learned.solve
+    monkeypatch.setattr(learned, 'solve', lambda *args: None)
+    for _ in range(3):
+        supervisor.compute(x)
+    assert supervisor.flying == FALLBACK and supervisor.resting
+    monkeypatch.setattr(learned, 'solve', solve)
+    colds = []
+    cold_start = learned.cold_start
+    monkeypatch.setattr(learned, 'cold_start', lambda *args, **kwargs: (
+        colds.append(1), cold_start(*args, **kwargs))[1])
+    for _ in range(8):
+        supervisor.compute(x)
+    assert supervisor.flying == LEARNED and supervisor.switches == 2
+    assert colds == [] and learned.plan is not None
+
+
 def test_make_controller_supervises_learned_laws_only():
     assert isinstance(make_controller('koopman_nmpc'), Supervisor)
     assert not isinstance(make_controller('koopman_nmpc', supervisor='none'), Supervisor)

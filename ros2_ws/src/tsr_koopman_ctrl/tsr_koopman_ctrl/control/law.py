@@ -10,7 +10,9 @@ and the tension limit u_max are the loop's, not the law's, so they are separate.
 with a learned model (`model`), bound the tension it plans with (`bound_tension`), count the
 steps its optimiser failed (`fallbacks`), show the states its plan predicts (`prediction`) and
 how far its model's last one-step prediction missed (`residual`), which the runtime-assurance
-supervisor judges it by (`supervisor.py`), and report on itself (`diagnostics`).
+supervisor judges it by (`supervisor.py`), hand its plan to another law on the same grid
+(`guess`, `start_from`: the supervisor's learned law starts from the fallback's plan instead of
+a cold start), and report on itself (`diagnostics`).
 """
 
 import math
@@ -111,6 +113,16 @@ class Law:
         """The states the law's plan predicts from the last state it computed for (N + 1, n),
         or None for a law without a plan. The supervisor checks the plan's bounds on it."""
         return None
+
+    def guess(self):
+        """The plan made at the last `compute`, for another law on the same grid to start
+        from: (tensions (N,), node states (N + 1, n)), or None for a law without a plan."""
+        return None
+
+    def start_from(self, guess):
+        """Offered, before this step's `compute`, a plan made for this step's state by another
+        law on the same grid (its `guess`): a law that would otherwise start cold this step (no
+        plan of its own, or its own failed) starts from it; the others ignore it."""
 
     def residual(self):
         """How far the state of the last `compute` lies from the law's one-step prediction of

@@ -41,9 +41,15 @@ tension flown last step, m_u the 1-norm smoothed by rate_smoothing, majorised th
 without it the default observer, which reads a 0.05-tau actuator lag as a fast gain change,
 and this law's high gain near the target limit-cycle (docs/nmpc.md).
 
-The first step, and a step whose QP fails or whose nodes leave the domain (a fallback), is a
-cold start: the linearised LQR law (Q = I, R = 1) flown on the map, refined by up to
-COLD_ITERATIONS QP steps in single shooting with backtracking (`cold_start`).
+The first step, and a step whose QP fails or whose nodes leave the domain (a fallback,
+counted), is a cold start: the linearised LQR law (Q = I, R = 1) flown on a guide map, refined
+by up to COLD_ITERATIONS QP steps in single shooting with backtracking (`cold_start`). The
+first step's trial plans roll out on `guide` (the learned map itself: 100-400 ms, paid while
+the plant waits for the first command), a failed step's on `recovery` (on the learned law the
+exact equations by default, ~10 ms: inside a running loop a cold start must fit a period or
+two). A law without a plan that is offered one made for the same state by another law on the
+same grid (`start_from`: the supervisor's fallback, when the learned law takes up again) starts
+with one RTI step from its nodes instead.
 """
 
 import dataclasses
@@ -52,7 +58,7 @@ from typing import ClassVar
 import numpy as np
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.control.law import Law, planar_state
+from tsr_koopman_ctrl.control.law import Law, planar_state, WARM_UP_STATES
 from tsr_koopman_ctrl.control.lqr import continuous_lqr_gain
 from tsr_koopman_ctrl.control.prediction_maps import LearnedMap, PhysicsMap
 from tsr_koopman_ctrl.control.settings import LawSettings, setting
@@ -128,6 +134,10 @@ class NmpcSettings(LawSettings):
                                  'the one flown last step', low=0.0, high=1e6)
     trust: float = setting(2.0, 'largest change of a planned tension per step (the QP trusts '
                            'the linearisation that far)', low=1e-3, high=10.0)
+    qp_iterations: int = setting(1000, "DAQP's iteration limit per QP: a QP that needs more "
+                                 'fails (a fallback) in a few ms instead of stalling the loop '
+                                 "~40 ms at DAQP's own 10000 (a solved one takes tens)",
+                                 low=10, high=100000)
     actuator_lag: float = setting(0.0, 'time constant of the tension actuator the plans model '
                                   '[tau]: the felt tension follows the planned one with this '
                                   'first-order lag (0: none)', low=0.0, high=10.0)
@@ -146,8 +156,10 @@ class Nmpc(Law):
         super().__init__(settings, **kwargs)
         s = self.settings
         self.map = self.make_map()
-        #: The map the cold start rolls its plans out on (`rollout`, `lqr_plan`).
+        #: The maps a cold start rolls its plans out on (`rollout`, `lqr_plan`): the first
+        #: step's, and a failed step's.
         self.guide = self.make_guide()
+        self.recovery = self.make_recovery()
         if abs(self.map.h - self.h) > 1e-12:
             raise ValueError(f'{self.name}: the map steps {self.map.h:g} tau, the loop '
                              f'h = {self.h:g}')
@@ -174,6 +186,9 @@ class Nmpc(Law):
     def make_guide(self):
         return self.map
 
+    def make_recovery(self):
+        return self.guide
+
     def reset(self):
         super().reset()
         #: The plan (N,) and its node states (N + 1, n), p_0 the state it was made from.
@@ -189,9 +204,19 @@ class Nmpc(Law):
         self.missed = None
         #: Samples between the last state and the next (`elapsed`).
         self.age = 1
+        #: A plan offered for the next step (`start_from`; None: none).
+        self.offered = None
         #: The tensions the plans may take: [0, u_max], or the felt range the offset-free
         #: wrapper sets ([phi(0), phi(u_max)]: what the actuator can make the plant feel).
         self.felt_range = (0.0, self.u_max)
+
+    def warm_up(self):
+        """`Law.warm_up`, and a failed step's cold start too: its map's functions (the
+        nominal equations' on the learned law) are built now, not at a failure mid-run."""
+        super().warm_up()
+        for x in WARM_UP_STATES:
+            self.cold_start(planar_state(x), guide=self.recovery)
+        self.reset()
 
     def bound_tension(self, low, high):
         """The offset-free wrapper's felt range: the plans stay within what the actuator can
@@ -202,8 +227,10 @@ class Nmpc(Law):
 
     def compute(self, x):
         x = planar_state(x)
+        offered, self.offered = self.offered, None
         if self.plan is None:
-            return self.fly(self.cold_start(x))
+            self.age = 1
+            return self.fly(self.start(x, offered))
         # 1. shift: node j advanced one sample lies at the new grid's time j (`age` samples
         # when the loop dropped states: the flown tension was held over them)
         age, self.age = self.age, 1
@@ -219,10 +246,44 @@ class Nmpc(Law):
             # A failed QP or a node off the map's domain: a cold start from here (from the
             # shifted plan if its rollout stays in the domain, else from the LQR plan)
             self.fallbacks += 1       # (once, whether the cold start then solves or not)
-            return self.fly(self.cold_start(x, shifted, count=False))
+            return self.fly(self.cold_start(x, shifted, count=False, guide=self.recovery))
         self.plan, self.nodes = step
         self.felt_plan = self.felt(self.plan)
         return self.fly(float(self.plan[0]))
+
+    def start(self, x, offered):
+        """The first tension without a plan of its own: one RTI step from the plan `offered`
+        (another law's for x, same grid; if that fails, a fallback: a recovery's cold start
+        from it), else a cold start."""
+        if offered is None:
+            return self.cold_start(x)
+        if self.adopt(x, offered):
+            return float(self.plan[0])
+        self.fallbacks += 1
+        return self.cold_start(x, np.clip(np.array(offered[0], dtype=float), *self.felt_range),
+                               count=False, guide=self.recovery)
+
+    def adopt(self, x, offered):
+        """One RTI step from `offered` = (plan, nodes) made for x by another law: True if it
+        solved (plan and nodes set), False otherwise."""
+        plan, nodes = offered
+        nodes = self.floored(np.array(nodes, dtype=float))
+        nodes[0] = x
+        step = self.iterate(nodes, np.clip(np.array(plan, dtype=float), *self.felt_range))
+        if step is None:
+            return False
+        self.plan, self.nodes = step
+        self.felt_plan = self.felt(self.plan)
+        self.missed = None
+        return True
+
+    def start_from(self, guess):
+        if guess is not None and np.shape(guess[0]) == self.durations.shape and np.shape(
+                guess[1]) == (len(self.durations) + 1, self.map.n):
+            self.offered = guess      # (a plan on another grid is no start)
+
+    def guess(self):
+        return None if self.plan is None else (self.plan, self.nodes)
 
     def fly(self, tension):
         """Record `tension` as flown (the rate term's u_{-1}) and advance the lag model's
@@ -260,8 +321,8 @@ class Nmpc(Law):
         self.fallbacks = fallbacks
 
     def observe(self, x):
-        """Not flown this step: the plan is dropped (the next step is a cold start)."""
-        self.plan = self.nodes = self.felt_plan = self.missed = None
+        """Not flown this step: the plan is dropped (the next step starts again, `start`)."""
+        self.plan = self.nodes = self.felt_plan = self.missed = self.offered = None
         self.actuator_before = self.actuator
 
     def prediction(self):
@@ -289,16 +350,18 @@ class Nmpc(Law):
             matrix[:, 0] += self.lag.start
         return gains @ matrix
 
-    def cold_start(self, x, plan=None, count=True):
+    def cold_start(self, x, plan=None, count=True, guide=None):
         """The first step, and the step after a failure: `plan` (default: the LQR law's, also
         where `plan`'s rollout leaves the domain) refined by up to COLD_ITERATIONS QP steps in
         single shooting: after each, the new plan is rolled out on the map from x, its step
         halved (up to BACKTRACKS times) until the rollout stays in the domain. The multiple-
         shooting steps that follow start from a plan whose nodes have no defects. If no QP
-        step succeeds, the plan is flown as it is (a fallback, counted if `count`)."""
-        nodes = None if plan is None else self.rollout(x, plan)
+        step succeeds, the plan is flown as it is (a fallback, counted if `count`). The trial
+        plans roll out on `guide` (default: the law's `guide`)."""
+        guide = self.guide if guide is None else guide
+        nodes = None if plan is None else self.rollout(x, plan, guide)
         if nodes is None or not in_domain(nodes):
-            plan, nodes = self.lqr_plan(x)
+            plan, nodes = self.lqr_plan(x, guide)
         solved = False
         for _ in range(self.cold_iterations):
             end, a, b = self.map.interval(nodes[:-1], self.felt(plan), self.counts,
@@ -309,14 +372,14 @@ class Nmpc(Law):
                 break
             for _ in range(BACKTRACKS):
                 candidate = np.clip(plan + du, *self.felt_range)
-                candidate_nodes = self.rollout(x, candidate)
+                candidate_nodes = self.rollout(x, candidate, guide)
                 if in_domain(candidate_nodes):
                     break
                 du = 0.5 * du
             else:
                 break
             plan, nodes, solved = candidate, candidate_nodes, True
-        if self.guide is not self.map:
+        if guide is not self.map:
             # The steps that follow start from the plan flown on the law's own map (no
             # defects), where it stays in the domain.
             own = self.map.rollout(x, self.felt(plan), self.counts)
@@ -325,18 +388,19 @@ class Nmpc(Law):
         self.plan, self.nodes, self.felt_plan = plan, nodes, self.felt(plan)
         return float(plan[0])
 
-    def rollout(self, x, plan):
+    def rollout(self, x, plan, guide=None):
         """The node states (N + 1, n) of `plan` flown from x, interval after interval, on the
         map the cold start is guided by (`guide`; single shooting: for the cold start only)."""
-        return self.guide.rollout(x, self.felt(plan), self.counts)
+        return (guide or self.guide).rollout(x, self.felt(plan), self.counts)
 
-    def lqr_plan(self, x):
+    def lqr_plan(self, x, guide=None):
         """The linearised LQR law (Q = I, R = 1) flown on the map over the grid, its tension
         held over each interval: (plan (N,), node states (N + 1, n))."""
-        plan, nodes = self.guide.feedback_rollout(x, dynamics.EQUILIBRIUM_TENSION,
-                                                  self.lqr_gain, self.felt_range, self.counts)
+        guide = guide or self.guide
+        plan, nodes = guide.feedback_rollout(x, dynamics.EQUILIBRIUM_TENSION, self.lqr_gain,
+                                             self.felt_range, self.counts)
         if self.lag is not None:   # (the LQR law's tensions, flown through the lag)
-            nodes = self.rollout(x, plan)
+            nodes = self.rollout(x, plan, guide)
         return plan, self.floored(nodes)
 
     def floored(self, nodes):
@@ -425,7 +489,7 @@ class Nmpc(Law):
         hessian, linear, rows, lower, upper, soft = self.qp_problem(predicted, gains, plan)
         sense = np.where(soft, 8, 0).astype(np.int32)
         du, _, status, _ = daqp.solve(hessian, linear, rows, upper, lower, sense,
-                                      rho_soft=SOFT_RHO)
+                                      rho_soft=SOFT_RHO, iter_limit=self.settings.qp_iterations)
         self.qp_status = int(status)
         if status < 1 or not np.all(np.isfinite(du)):
             return None
@@ -516,12 +580,18 @@ class KoopmanNmpcSettings(NmpcSettings):
                                    "step, a failed QP) before its first tension is flown: "
                                    "each costs a rollout of the learned map (~20 ms); the steps "
                                    "that follow refine the plan anyway", low=1, high=20)
-    cold_guide: str = setting('model', "what a cold start (the first step, a failed QP) "
-                              "rolls its trial plans out on: 'model' (the learned map, sample "
-                              "by sample: 25-450 ms) or 'physics' (the nominal equations, one "
-                              "compiled-graph call: ~10 ms a cold start, and another law: the "
-                              "plans it starts from differ); the QP steps use the learned map "
-                              "either way", choices=('model', 'physics'))
+    cold_guide: str = setting('model', "what the first step's cold start (a run's first "
+                              "state, after a pause) rolls its trial plans out on: 'model' (the "
+                              "learned map, sample by sample: 25-450 ms, paid while the plant "
+                              "waits for the first command) or 'physics' (the nominal equations, "
+                              "one compiled-graph call: ~10 ms, and another law: the plans it "
+                              "starts from differ); the QP steps use the learned map either way",
+                              choices=('model', 'physics'))
+    recovery_guide: str = setting('physics', "what a failed step's cold start (a failed QP, "
+                                  "a node off the domain) rolls its trial plans out on, as "
+                                  "cold_guide: 'physics' (~10 ms) keeps a real-time loop within "
+                                  "a period or two where 'model' stalls it for tens",
+                                  choices=('model', 'physics'))
 
 
 class KoopmanNmpc(Nmpc):
@@ -539,4 +609,9 @@ class KoopmanNmpc(Nmpc):
         return LearnedMap(self.model, dtype=self.settings.precision)
 
     def make_guide(self):
-        return PhysicsMap(self.h) if self.settings.cold_guide == 'physics' else self.map
+        #: The nominal equations' map, one for both guides that take it.
+        self.physics_map = PhysicsMap(self.h)
+        return self.physics_map if self.settings.cold_guide == 'physics' else self.map
+
+    def make_recovery(self):
+        return self.physics_map if self.settings.recovery_guide == 'physics' else self.map

@@ -105,6 +105,12 @@ class OffsetFree(Law):
         self.last_command = command   # the observer must know the clamped command
         return command
 
+    def warm_up(self):
+        """The law's own warm-up (what it builds on paths a plain step does not take), then
+        the steps through the observer."""
+        self.law.warm_up()
+        super().warm_up()
+
     def elapsed(self, steps):
         """The observer predicts across the samples dropped, under the command held."""
         if self.last_command is not None:
@@ -132,6 +138,12 @@ class OffsetFree(Law):
 
     def prediction(self):
         return self.law.prediction()
+
+    def guess(self):
+        return self.law.guess()
+
+    def start_from(self, guess):
+        self.law.start_from(guess)
 
     def residual(self):
         """The observer's innovation: the measurement less its model's one-step prediction

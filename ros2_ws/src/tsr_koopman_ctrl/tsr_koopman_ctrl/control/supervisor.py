@@ -8,8 +8,9 @@ measures it). The learned law keeps computing while the fallback flies (told the
 flown) and takes back, with hysteresis, once it has been trusted for `takeback_steps` steps
 in a row; when it faults while the fallback flies, it rests for `takeback_steps` steps (it sees
 the states, its observer keeps up, it plans nothing: a lost learned law would cold-start every
-step) and then starts afresh on probation. The fallback computes every step too (`shadow`), so it
-takes over warm: its plan is the one it would be flying.
+step) and then starts afresh on probation, from the plan the fallback made for that state (one
+RTI step: `Law.start_from`), not from a cold start. The fallback computes every step too
+(`shadow`), so it takes over warm: its plan is the one it would be flying.
 
 What the monitor watches (each a reason on /diagnostics and in the bag):
 
@@ -121,6 +122,10 @@ class Supervisor(Law):
         # state, so that its observer keeps up.
         fallback = (self.run(self.fallback, x) if self.flying == FALLBACK or
                     s.shadow == 'always' or (s.shadow == 'armed' and self.armed) else None)
+        if fallback is not None:
+            # The learned law, if it must start again this step (back from its rest, or its
+            # QP fails), starts from the fallback's plan: one RTI step, not a cold start
+            self.learned.start_from(self.fallback.guess())
         learned = None
         if self.resting:
             self.resting -= 1
