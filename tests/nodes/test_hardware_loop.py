@@ -87,17 +87,6 @@ def run_states(run, first=0, last=None):
                      if first <= step and (last is None or step <= last)])
 
 
-#: The real-time loop's open defect (issue 40's target, not met): the learned NMPC's cold start
-#: (the first step of a run, a failed QP, taking back from the fallback) takes 125-420 ms, 12-42
-#: periods at 100 Hz, and the supervisor's fallback restarts cold on a failed QP too; a run
-#: whose plan brushes the 0.8-rad bound (nominal swing 0.793) hands over and back, and the
-#: drops snowball. Measured on this 2-core machine: at least 6 of 10 runs of this test lost a
-#: run (a tumble, the tether past twice its length) or settled later than 1.5x the minimum time.
-REAL_TIME_DEFECT = ('the timed loop at 100 Hz is not robust yet: cold starts of 125-420 ms '
-                    'drop states and a run can be lost (docs/supervisor.md)')
-
-
-@pytest.mark.xfail(strict=False, reason=REAL_TIME_DEFECT)
 def test_the_timed_loop_at_100_hz_settles_from_every_start_and_after_each_reset(
         ros, start_node, busy):
     """The default law in the hardware rehearsal: 100 steps a wall second whatever the
@@ -193,11 +182,10 @@ def test_a_deactivation_mid_deployment_holds_and_a_shutdown_sends_the_stop_and_e
     assert controller.wait(timeout=15) == 0
 
 
-@pytest.mark.xfail(strict=False, reason=REAL_TIME_DEFECT)
 def test_resumed_after_a_hold_the_law_settles(ros, start_node):
     """Activated again after the hold, the law resumes where the plant is (librating) and
-    settles. ROS-free, in lockstep, it does from every phase of the libration tried; in the
-    timed loop its cold start lets the plant run 12-25 periods on and some resumes are lost."""
+    settles (ROS-free, in lockstep, it does from every phase of the libration tried). Its cold
+    start costs nothing here: the plant stays held until the first command."""
     controller, watch, stopped_at, _ = stop_mid_deployment(ros, start_node)
     wait(ros, watch, lambda: max(watch.states) > stopped_at + 200, timeout=30.0,
          what='two tau held')
