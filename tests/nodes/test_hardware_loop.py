@@ -128,6 +128,7 @@ def test_the_timed_loop_at_100_hz_settles_from_every_start_and_after_each_reset(
         assert settle * dynamics.PAPER_STEP <= 1.5 * frontier_tau(start, max(swing, least))
     level, _, values = health_of(watch, 'tsr_controller')
     assert int(values['runs']) == len(starts) - 1 and float(values['compute_median_ms']) < 10
+    assert values['scheduling'] == 'SCHED_FIFO 50'      # the executor thread runs in real time
 
 
 def stop_mid_deployment(ros, start_node):

@@ -184,7 +184,7 @@ class Health:
         self.timer = steady_timer(node, period, self.publish)
 
     def publish(self):
-        level, message, values = self.report()
+        level, message, values = with_scheduling(self.node, *self.report())
         status = DiagnosticStatus(level=level, name=self.name, message=message,
                                   hardware_id=self.node.get_name(),
                                   values=[KeyValue(key=str(key), value=_text(value))
@@ -192,6 +192,29 @@ class Health:
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.node.get_clock().now().to_msg()
         self.publisher.publish(array)
+
+
+def scheduling():
+    """How the calling thread is scheduled: 'SCHED_FIFO <priority>' or 'normal'."""
+    try:
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            return f'SCHED_FIFO {os.sched_getparam(0).sched_priority}'
+    except (OSError, AttributeError):
+        pass
+    return 'normal'
+
+
+def with_scheduling(node, level, message, values):
+    """A health report with the executor thread's scheduling (`scheduling`: the thread that
+    publishes it), WARN where the node's `thread_priority` asked for real time and the system
+    refused it (a timed loop beside busy processes then misses its period)."""
+    now = scheduling()
+    asked = (node.get_parameter('thread_priority').value
+             if node.has_parameter('thread_priority') else 0)
+    if asked and now == 'normal' and level == Health.OK:
+        level, message = Health.WARN, (f'thread_priority {asked} refused: running at normal '
+                                       'priority')
+    return level, message, {**values, 'scheduling': now}
 
 
 def _text(value):
