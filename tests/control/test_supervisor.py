@@ -46,6 +46,9 @@ class Scripted(Law):
     def prediction(self):
         return self.plan
 
+    def prediction_times(self):
+        return np.array([0.0, 0.5, 2.0])
+
     def observe(self, x):
         self.observed += 1
 
@@ -96,6 +99,25 @@ def test_a_plan_past_the_swing_bound_is_a_fault():
     steps = flown(supervisor, 8)
     assert [flying for _, flying, _ in steps] == [LEARNED] * 6 + [FALLBACK] * 2
     assert steps[6][2] == 'bound'
+
+
+class FarSwing(Scripted):
+    """Plans a swing of 0.3 rad half a tau ahead and of 0.6 rad two tau ahead."""
+
+    def compute(self, x):
+        tension = super().compute(x)
+        self.plan[1, dynamics.THETA], self.plan[2, dynamics.THETA] = 0.3, 0.6
+        return tension
+
+
+def test_only_the_plan_within_bound_horizon_is_judged_against_the_bound():
+    """A plan whose far end passes the bound is planned again before it flies (off-nominal
+    such plans switched the plant to the slower fallback from runs that never swung past it);
+    within bound_horizon it is a fault."""
+    for horizon, flying in ((1.0, LEARNED), (2.0, FALLBACK)):
+        supervisor = Supervisor(FarSwing(2.0), Scripted(1.0), takeback_steps=1000,
+                                bound_horizon=horizon)
+        assert flown(supervisor, 3)[-1][1] == flying
 
 
 def test_the_learned_law_takes_back_after_takeback_steps_trusted_steps_in_a_row():

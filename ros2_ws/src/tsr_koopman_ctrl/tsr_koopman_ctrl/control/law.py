@@ -124,6 +124,11 @@ class Law:
         law on the same grid (its `guess`): a law that would otherwise start cold this step (no
         plan of its own, or its own failed) starts from it; the others ignore it."""
 
+    def prediction_times(self):
+        """When the states of `prediction` lie, in tau after the last state (N + 1,), or None
+        for a law without a plan."""
+        return None
+
     def residual(self):
         """How far the state of the last `compute` lies from the law's one-step prediction of
         it (its model's, from the state before and the tension felt): (n,), or None for a law

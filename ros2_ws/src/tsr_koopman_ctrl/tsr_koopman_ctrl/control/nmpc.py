@@ -172,6 +172,7 @@ class Nmpc(Law):
             raise ValueError(f'{self.name}.interval must be a multiple of h = {self.h:g}, got '
                              f'{s.interval}')
         self.starts = np.r_[0.0, np.cumsum(self.durations)[:-1]]
+        self.node_times = np.r_[self.starts, self.starts[-1] + self.durations[-1]]
         self.q = np.asarray(s.q, dtype=float)
         self.terminal = continuous_lqr_gain(self.q, s.r)[1]
         self.lqr_gain = continuous_lqr_gain(np.ones(4), 1.0)[0]
@@ -327,6 +328,9 @@ class Nmpc(Law):
 
     def prediction(self):
         return self.nodes
+
+    def prediction_times(self):
+        return self.node_times
 
     def residual(self):
         return self.missed

@@ -139,6 +139,9 @@ class OffsetFree(Law):
     def prediction(self):
         return self.law.prediction()
 
+    def prediction_times(self):
+        return self.law.prediction_times()
+
     def guess(self):
         return self.law.guess()
 

@@ -16,7 +16,8 @@ What the monitor watches (each a reason on /diagnostics and in the bag):
 
 - `fallback`, `bound`: the learned law faulted on `fault_count` of the last `fault_window`
   steps, a fault being a step where its optimiser fell back or its plan (a law that has one:
-  `Law.prediction`) breaks its swing bound by more than `bound_tolerance`; a non-finite
+  `Law.prediction`) breaks its swing bound by more than `bound_tolerance` within
+  `bound_horizon` (the plan beyond is planned again before it flies); a non-finite
   tension, plan or prediction is `fallback` at once. One fault is no
   reason: a single failed QP at a bang-bang switch is part of a nominal deployment; a learned
   model that cannot keep its own plan within the bound faults step after step;
@@ -58,6 +59,11 @@ class SupervisorSettings(LawSettings):
     bound_tolerance: float = setting(0.005, "how far the learned plan's swing may pass the "
                                      'swing bound before the step is a fault [rad]', low=0.0,
                                      high=10.0)
+    bound_horizon: float = setting(1.0, "how far ahead the learned plan's swing is judged "
+                                   'against the bound [tau]: off-nominal, the far end of a '
+                                   'plan passes it where the run never does (a needless '
+                                   'switch); 0.5 missed a tumble under theta_max 0.4',
+                                   low=0.0, high=100.0)
     envelope_margin: float = setting(0.1, "the model's training envelope widened by this "
                                      'fraction of its width on each side', low=0.0, high=10.0)
     prediction_threshold: float = setting(0.2, "largest miss of the model's one-step "
@@ -199,8 +205,7 @@ class Supervisor(Law):
                           and (missed is None or np.all(np.isfinite(missed))))
         if fell_back or non_finite:
             self.faults.append((self.steps, 'fallback'))
-        elif plan is not None and (np.abs(plan[:, dynamics.THETA]).max()
-                                   > self.theta_bound + s.bound_tolerance):
+        elif plan is not None and self.swing_ahead(plan) > self.theta_bound + s.bound_tolerance:
             self.faults.append((self.steps, 'bound'))
         if self.faults and self.faults[-1][0] == self.steps:
             self.armed = s.arm_steps + 1      # (this step's included)
@@ -215,6 +220,17 @@ class Supervisor(Law):
         if missed is not None and np.max(np.abs(missed)) > s.prediction_threshold:
             return 'prediction'
         return ''
+
+    def swing_ahead(self, plan):
+        """The largest |theta| of the learned plan within bound_horizon (all of it for a law
+        that does not say when its states lie)."""
+        times = self.learned.prediction_times()
+        if times is not None:
+            plan = plan[times <= self.supervisor_settings.bound_horizon + 1e-9]
+        return float(np.abs(plan[:, dynamics.THETA]).max()) if len(plan) else 0.0
+
+    def prediction_times(self):
+        return (self.learned if self.flying == LEARNED else self.fallback).prediction_times()
 
     def prediction(self):
         return (self.learned if self.flying == LEARNED else self.fallback).prediction()
