@@ -122,7 +122,7 @@ class Law:
     def start_from(self, guess):
         """Offered, before this step's `compute`, a plan made for this step's state by another
         law on the same grid (its `guess`): a law that would otherwise start cold this step (no
-        plan of its own, or its own failed) starts from it; the others ignore it."""
+        plan of its own) starts from it; the others ignore it."""
 
     def prediction_times(self):
         """When the states of `prediction` lie, in tau after the last state (N + 1,), or None

@@ -129,8 +129,8 @@ class Supervisor(Law):
         fallback = (self.run(self.fallback, x) if self.flying == FALLBACK or
                     s.shadow == 'always' or (s.shadow == 'armed' and self.armed) else None)
         if fallback is not None:
-            # The learned law, if it must start again this step (back from its rest, or its
-            # QP fails), starts from the fallback's plan: one RTI step, not a cold start
+            # The learned law, if it has no plan this step (back from its rest), starts from
+            # the fallback's: one RTI step, not a cold start
             self.learned.start_from(self.fallback.guess())
         learned = None
         if self.resting:
