@@ -19,7 +19,7 @@ import sys
 import numpy as np
 from tsr_sim import dynamics
 
-from lab.report import write_into_page, write_results
+from lab.report import check_page, marker_name, publish
 from tsr_koopman_ctrl.control import closed_loop, make_controller
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
 
@@ -79,6 +79,12 @@ def parser():
 
 def main(argv=None):
     args = parser().parse_args(argv)
+    if args.page:
+        try:
+            check_page(args.page, marker_name(args.out))
+        except ValueError as error:
+            print(f'assurance: {error}', file=sys.stderr)
+            return 2
     rows, sections = [], []
     cells = 'each cell: settle tau (swing [rad], ratio to the minimum time at that swing)'
     if 'nominal' in args.parts:
@@ -93,10 +99,7 @@ def main(argv=None):
             sections.append(f'{label} ({cells}):\n\n'
                             + part(label, {}, plant, ['bare', 'supervised'], rows))
     text = '\n\n'.join(sections) + '\n'
-    write_results(args.out, 'assurance', rows, text)
-    if args.page:
-        write_into_page(args.page, 'assurance', text)
-    print(text)
+    publish(args.out, 'assurance', rows, text, args.page, marker=marker_name(args.out))
     return 0
 
 

@@ -14,7 +14,8 @@ names. Per run: settle time
 into the 1% zone, swing, the frontier at that swing from that start (evaluation/frontier.py,
 computed by the project's own minimum-time solver) and the ratio, tension integral and peak,
 the law's compute time per step (median, p99) and solver fallbacks. Writes comparison.md,
-comparison.json and a plot per start (every preset but 'untuned').
+comparison.json and a plot per start (every preset but 'untuned'), and the page's tables into
+--page between the markers named after --out (`--page ""`: none).
 """
 
 import argparse
@@ -29,7 +30,10 @@ from tsr_koopman_ctrl.control.registry import law_class, preset
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments, plot_ratios
 from tsr_koopman_ctrl import arguments
-from lab.report import write_results
+from lab.report import check_page, marker_name, stamp, write_into_page, write_results
+
+#: How far a run's swing may pass a swing bound and still have held it [rad].
+HELD_TOLERANCE = 0.005
 
 
 def run(law, settings, start, steps):
@@ -127,6 +131,81 @@ def markdown(rows):
     return '\n'.join(lines) + '\n'
 
 
+def page_tables(rows, theta_max=None):
+    """The page's view of a comparison: settle tau / swing / frontier ratio per start and law
+    (the 'tuned' preset, else the first), then one row per law and preset; with a swing bound,
+    where each law held it."""
+    presets = list(dict.fromkeys(r['preset'] for r in rows))
+    shown = next((p for p in presets if p.split(',')[0] == 'tuned'), presets[0])
+
+    def mean(values):
+        values = [v for v in values if v is not None]
+        return float(np.mean(values)) if values else None
+
+    def of(law, name):
+        return [r for r in rows if (r['law'], r['preset']) == (law, name)]
+    laws = sorted(dict.fromkeys(r['law'] for r in rows),
+                  key=lambda law: mean(r['frontier_ratio'] for r in of(law, shown)) or np.inf)
+    lines = [f"{stamp()}, {len(rows)} runs. Settle tau / swing [rad] / **frontier ratio**, "
+             f'settings `{shown}`:', '',
+             '| x0 | ' + ' | '.join(f'`{law}`' for law in laws if of(law, shown)) + ' |',
+             '|---' * (1 + sum(bool(of(law, shown)) for law in laws)) + '|']
+    for start in dict.fromkeys(tuple(r['start']) for r in rows):
+        mine = {r['law']: r for r in rows if r['preset'] == shown and tuple(r['start']) == start}
+        kind = next(iter(mine.values()))['starts']
+        cells = []
+        for law in laws:
+            if law in mine:
+                r = mine[law]
+                settle = fmt(r['settle_tau']) if r['settle_tau'] is not None else (
+                    'tumbled' if r['halted'] else 'not settled')
+                cells.append(f"{settle} / {r['swing']:.2f} / **{fmt(r['frontier_ratio'])}**")
+        label = f'{list(start)}' + (' (held-out)' if kind == 'held-out' else '')
+        lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
+    lines += ['', 'Per law and settings (compute: the median of the runs\' median step on this '
+              'machine):', '',
+              '| law | settings | settles | mean settle tau, comparison / held-out | '
+              'frontier ratio | peak tension | compute median [ms] | fallbacks |',
+              '|---|---|---|---|---|---|---|---|']
+    for name in presets:
+        for law in laws:
+            mine = of(law, name)
+            if not mine:
+                continue
+            ratios = [r['frontier_ratio'] for r in mine if r['frontier_ratio'] is not None]
+            span = f'{min(ratios):.2f}..{max(ratios):.2f}' if ratios else '-'
+            means = ' / '.join(fmt(mean(r['settle_tau'] for r in mine if r['starts'] == kind))
+                               for kind in ('comparison', 'held-out'))
+            settled = sum(r['settle_tau'] is not None for r in mine)
+            compute = np.median([r['compute_median_us'] for r in mine]) / 1000
+            lines.append(f'| `{law}` | {cell(name)} | {settled}/{len(mine)} | {means} | {span} | '
+                         f"{max(r['tension_max'] for r in mine):.2f} | {compute:.2f} | "
+                         f"{sum(r['fallbacks'] for r in mine)} |")
+    if theta_max is not None:
+        bound = theta_max + HELD_TOLERANCE
+        lines += ['', f'Where each law held the bound (swing <= {bound:g} rad on the plant):', '',
+                  '| law | settings | held | swing where held | frontier ratio where held | '
+                  'where it did not: start, swing, outcome |', '|---|---|---|---|---|---|']
+        for name in presets:
+            for law in laws:
+                mine = of(law, name)
+                if not mine:
+                    continue
+                held = [r for r in mine if r['swing'] <= bound]
+                lost = [r for r in mine if r['swing'] > bound]
+                swings = [r['swing'] for r in held]
+                swings = f'{min(swings):.3f}..{max(swings):.3f}' if held else '-'
+                ratios = [r['frontier_ratio'] for r in held if r['frontier_ratio'] is not None]
+                span = f'{min(ratios):.2f}..{max(ratios):.2f}' if ratios else '-'
+                where = '; '.join(
+                    f"{tuple(r['start'])}: {r['swing']:.2f}, "
+                    + (f"settled {r['settle_tau']:.2f}" if r['settle_tau'] is not None else
+                       'tumbled' if r['halted'] else 'not settled') for r in lost) or '-'
+                lines.append(f'| `{law}` | {cell(name)} | {len(held)}/{len(mine)} | {swings} | '
+                             f'{span} | {where} |')
+    return '\n'.join(lines) + '\n'
+
+
 def parser():
     p = argparse.ArgumentParser(prog='compare', description=__doc__.split('\n\n')[0])
     p.add_argument('--law', nargs='+', default=sorted(CONTROLLERS), choices=sorted(CONTROLLERS),
@@ -140,18 +219,24 @@ def parser():
                    help='a swing bound for the laws that take one (koopman_mpc: soft; '
                    'physics_nmpc, koopman_nmpc: exact penalty); the others are left out')
     p.add_argument('--out', default=os.path.join('out', 'comparison'), type=arguments.output_dir)
+    p.add_argument('--page', default='', help='a docs page to write the tables into, between '
+                   'the markers named after --out (docs/comparison.md has them)')
     return p
 
 
 def main(argv=None):
     args = parser().parse_args(argv)
     try:
+        if args.page:
+            check_page(args.page, marker_name(args.out))
         rows, loops = compare(args.law, args.presets, args.steps, args.theta_max)
     except ValueError as error:
         print(f'compare: {error}', file=sys.stderr)
         return 2
     text = markdown(rows)
     write_results(args.out, 'comparison', rows, text)
+    if args.page:
+        write_into_page(args.page, marker_name(args.out), page_tables(rows, args.theta_max))
     for index, (start, runs) in enumerate(loops.items()):
         plot_deployments(runs, os.path.join(args.out, f'x0_{index}.png'),
                          title=f'TSR deployment from x0 = {list(start)}')

@@ -22,7 +22,7 @@ import sys
 import numpy as np
 from tsr_sim import dynamics
 
-from lab.report import write_results, write_into_page
+from lab.report import check_page, marker_name, publish
 from tsr_koopman_ctrl.control import closed_loop, make_controller
 from tsr_koopman_ctrl.evaluation import run_figures
 
@@ -119,6 +119,12 @@ def parser():
 
 def main(argv=None):
     args = parser().parse_args(argv)
+    if args.page:
+        try:
+            check_page(args.page, marker_name(args.out))
+        except ValueError as error:
+            print(f'fallback_region: {error}', file=sys.stderr)
+            return 2
     jobs = [(start, theta_max, args.steps) for theta_max in args.theta_max
             for start in grid()]
     print(f'{len(jobs)} runs of {args.steps} steps on {args.workers} worker(s)', flush=True)
@@ -131,12 +137,10 @@ def main(argv=None):
     else:
         rows = [fly(job) for job in jobs]
     text = '\n'.join(table(rows, theta_max) for theta_max in args.theta_max)
-    write_results(args.out, 'fallback_region', rows, text)
+    os.makedirs(args.out, exist_ok=True)
     for theta_max in args.theta_max:
         plot(rows, theta_max, os.path.join(args.out, f'fallback_region_{theta_max:g}.png'))
-    if args.page:
-        write_into_page(args.page, 'fallback_region', text)
-    print(text)
+    publish(args.out, 'fallback_region', rows, text, args.page, marker=marker_name(args.out))
     return 0
 
 

@@ -3,19 +3,24 @@ DDS (simulator, controller, recorder as three processes) from the paper's start,
 read back from its bag.
 
     python -m lab.main_job [--law koopman_nmpc koopman_lqr] [--out lab/results/main_job]
+        [--page README.md]
 
 Writes main_job.md (the deployment table), main_job.json and main_job.png (both runs on one
-plot) into --out; the bags go to --out/bags.
+plot) into --out, the bags into --out/bags; with --page, the headline table into the page
+between its markers and the plot to docs/figures/main_job.png beside it.
 """
 
 import argparse
 import json
 import os
+import shutil
 import sys
 
+from lab.report import check_page, marker_name, stamp, write_into_page
 from tsr_koopman_ctrl import arguments
 from tsr_koopman_ctrl.control.registry import CONTROLLERS, DEFAULT_LAW
-from tsr_koopman_ctrl.deployment import Deployment, DeploymentError, summary_table
+from tsr_koopman_ctrl.deployment import (Deployment, DeploymentError, settle_cell,
+                                         summary_table)
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
 
 
@@ -27,6 +32,9 @@ def parser():
                    'and the paper\'s koopman_lqr)')
     p.add_argument('--steps', type=arguments.STEPS, default=2000)
     p.add_argument('--out', default='lab/results/main_job')
+    p.add_argument('--page', default='', help='a page to write the headline into, between '
+                   'the markers named after --out (README.md has them); the plot goes to '
+                   'docs/figures/main_job.png beside it')
     p.add_argument('--namespace', help="the nodes' ROS namespace (default: the root; every "
                    'deployment has a DDS domain of its own)')
     return p
@@ -35,6 +43,12 @@ def parser():
 def main(argv=None):
     args = parser().parse_args(argv)
     rows, curves = [], {}
+    try:
+        if args.page:
+            check_page(args.page, marker_name(args.out))
+    except ValueError as error:
+        print(f'main_job: {error}', file=sys.stderr)
+        return 2
     os.makedirs(args.out, exist_ok=True)
     try:
         for law in args.law:
@@ -55,8 +69,46 @@ def main(argv=None):
         json.dump(rows, f, indent=1, default=str)
     plot_deployments(curves, os.path.join(args.out, 'main_job.png'),
                      title='Deployed over DDS from the paper\'s start')
+    if args.page:
+        write_into_page(args.page, marker_name(args.out), headline(rows))
+        figure = os.path.join(os.path.dirname(args.page), FIGURE)
+        os.makedirs(os.path.dirname(figure), exist_ok=True)
+        shutil.copyfile(os.path.join(args.out, 'main_job.png'), figure)
     print(table)
     return 0
+
+
+#: Where the README's plot lives, from the page's folder.
+FIGURE = os.path.join('docs', 'figures', 'main_job.png')
+#: How the headline names the laws it knows.
+ROLES = {DEFAULT_LAW: 'main job', 'koopman_lqr': "the paper's"}
+
+
+def headline(rows):
+    """The README's table: one row per run, the main job's settle time and every ratio bold."""
+    def ms(us):
+        return '-' if us is None else f'{us / 1000:.3g}'
+
+    def fmt(value, digits=2):
+        return '-' if value is None else f'{value:.{digits}f}'
+    lines = [f"Deployed over DDS from the paper's start ({stamp()}; every figure read back "
+             'from the bags):', '',
+             '| law | settle tau (1% zone) | swing [rad] | l overshoot | max u | '
+             'compute median / p99 [ms] | minimum time at that swing [tau] | ratio |',
+             '|---|---|---|---|---|---|---|---|']
+    for r in rows:
+        law = r['controller']
+        name = f'`{law}`' + (f' ({ROLES[law]})' if law in ROLES else '')
+        settle = settle_cell(r)
+        settle = f'**{settle}**' if law == DEFAULT_LAW else settle
+        swing = max(abs(r['theta_min']), abs(r['theta_max']))
+        lines.append(f"| {name} | {settle} | {swing:.3f} | {100 * r['length_overshoot']:.2f}% "
+                     f"| {r['tension_max']:.2f} | {ms(r['compute_median_us'])} / "
+                     f"{ms(r['compute_p99_us'])} | {fmt(r['frontier_tau'], 1)} | "
+                     f"**{fmt(r['frontier_ratio'])}** |")
+    switches = sum(r.get('supervisor_switches') or 0 for r in rows)
+    lines += ['', f'The runtime-assurance supervisor handed over {switches} times in these runs.']
+    return '\n'.join(lines) + '\n'
 
 
 if __name__ == '__main__':

@@ -20,7 +20,7 @@ from tsr_koopman_ctrl.control.koopman_lqr import load_model
 from tsr_koopman_ctrl.evaluation import closed_loop_figures, COMPARISON_STARTS
 from tsr_koopman_ctrl.model import DEFAULT_MODEL
 from tsr_koopman_ctrl import arguments
-from lab.report import write_results
+from lab.report import publish
 
 
 def run(model, horizon, x0, steps):
@@ -73,8 +73,7 @@ def main(argv=None):
         results.append({'model': path, 'horizon': horizon, 'runs': runs})
     text = ('Settle time into the 1% zone in tau (swing max |theta| in rad), koopman_mpc '
             f'defaults but the horizon, {args.steps} steps.\n\n' + table(results) + '\n')
-    write_results(args.out, 'mpc_sweep', results, text, indent=2)
-    print(text)
+    publish(args.out, 'mpc_sweep', results, text, indent=2)
     return 0
 
 

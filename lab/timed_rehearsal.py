@@ -25,7 +25,7 @@ from tsr_sim import dynamics
 from tsr_sim.plant import config_from_parameters, Plant, Status
 from tsr_sim.units import Scale
 
-from lab.report import write_into_page, write_results
+from lab.report import check_page, marker_name, publish
 from tsr_koopman_ctrl.control import make_controller, TensionLimiter
 from tsr_koopman_ctrl.control.step import ControlStep
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
@@ -117,6 +117,12 @@ def parser():
 
 def main(argv=None):
     args = parser().parse_args(argv)
+    if args.page:
+        try:
+            check_page(args.page, marker_name(args.out))
+        except ValueError as error:
+            print(f'timed_rehearsal: {error}', file=sys.stderr)
+            return 2
     law = make_controller(args.law)
     law.warm_up()
     rows = []
@@ -135,10 +141,7 @@ def main(argv=None):
                  if r['start'] == list(start) and r['slowdown'] == s]
         lines.append(f'| {list(start)} | ' + ' | '.join(cells) + ' |')
     text = '\n'.join(lines) + '\n'
-    write_results(args.out, 'timed_rehearsal', rows, text)
-    if args.page:
-        write_into_page(args.page, 'timed_rehearsal', text)
-    print(text)
+    publish(args.out, 'timed_rehearsal', rows, text, args.page, marker=marker_name(args.out))
     return 0
 
 

@@ -50,3 +50,33 @@ def test_the_machine_path_pattern():
     assert MACHINE_PATH.search('PY=/home/u/.venv/bin/python')
     assert not MACHINE_PATH.search('$TMPDIR/tsr-dds-domains/1.lock, /proc/net/udp')
     assert not MACHINE_PATH.search('lab/results/work/x and docs/tmp/y')
+
+
+#: A figure in prose: 1.03, 48, 2.95x (a range's two ends are two figures; not the digits of
+#: a name such as seed1 or 0.8a).
+FIGURE = re.compile(r'(?<![A-Za-z_\d])(?<!\d\.)\d+(?:\.\d+)?(?!\.?\d)(?![A-Za-wyz_])')
+
+
+def results_rows():
+    """(question, answer, linked pages) of the README's Results table."""
+    text = (ROOT / 'README.md').read_text()
+    table = text.split('## Results', 1)[1].split('\n\n')[2]
+    for line in table.splitlines()[2:]:
+        question, answer, pages = [cell.strip() for cell in line.strip('|').split(' | ')]
+        yield question, answer, [ROOT / target for target in LINK.findall(pages)]
+
+
+def test_the_readme_s_results_table_is_read():
+    rows = list(results_rows())
+    assert len(rows) >= 5 and all(pages for _, _, pages in rows)
+    assert FIGURE.findall('1.03..1.08x, 48 cases, 2.95x, h = 0.01 tau, koopman_lqr 0.8a') == [
+        '1.03', '1.08', '48', '2.95', '0.01']
+
+
+@pytest.mark.parametrize('question, answer, pages', [
+    pytest.param(*row, id=row[0]) for row in results_rows()])
+def test_every_figure_the_readme_s_results_quote_is_in_a_page_they_link(
+        question, answer, pages):
+    shown = ' '.join(page.read_text() for page in pages)
+    missing = [figure for figure in FIGURE.findall(answer) if figure not in shown]
+    assert not missing, f'README, {question!r}: {missing} in none of {[p.name for p in pages]}'

@@ -32,9 +32,20 @@ def test_compare_scores_every_start_with_the_loop_s_own_figures(tmp_path):
 
 
 def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):
+    page = tmp_path / 'page.md'
+    page.write_text('# The page\n<!-- swing:begin -->\n<!-- swing:end -->\n')
+    out = tmp_path / 'swing'
     assert compare.main(['--law', 'linear_lqr', 'koopman_mpc', '--presets', 'tuned',
-                         '--theta-max', '0.5', '--steps', '300', '--out', str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / 'comparison.json').read_text())
+                         '--theta-max', '0.5', '--steps', '300', '--out', str(out),
+                         '--page', str(page)]) == 0
+    rows = json.loads((out / 'comparison.json').read_text())
+    # The page's tables, from the same rows: where the law held the bound and where not
+    shown = page.read_text()
+    assert compare.page_tables(rows, 0.5) in shown
+    held = sum(r['swing'] <= 0.505 for r in rows)
+    assert f"| `koopman_mpc` | tuned, \\|theta\\| <= 0.5 | {held}/9 |" in shown
+    for r in rows:
+        assert f"{r['swing']:.2f}" in shown
     assert {r['law'] for r in rows} == {'koopman_mpc'} and len(rows) == 9
     assert {r['preset'] for r in rows} == {'tuned, |theta| <= 0.5'}
     from tsr_koopman_ctrl.control import make_controller
@@ -42,13 +53,22 @@ def test_a_swing_bound_goes_to_the_laws_that_take_one(tmp_path):
                                 COMPARISON_STARTS[0], 300)
     assert rows[0]['swing'] == first['swing']
     # The bound's label keeps its table row in columns: every line as many cells as the head.
-    table = (tmp_path / 'comparison.md').read_text().split('\n\n')[0].splitlines()
+    table = (out / 'comparison.md').read_text().split('\n\n')[0].splitlines()
     assert '| tuned, \\|theta\\| <= 0.5 |' in table[2]
     assert len({line.replace('\\|', '').count('|') for line in table}) == 1
     # None of the laws takes one: an error, not an empty table.
     assert compare.main(['--law', 'linear_lqr', '--theta-max', '0.4', '--steps', '10',
                          '--out', str(tmp_path / 'none')]) == 2
     assert not (tmp_path / 'none').exists()
+
+
+def test_a_page_without_the_markers_is_refused_before_the_runs(tmp_path, capsys):
+    page = tmp_path / 'page.md'
+    page.write_text('# no markers\n')
+    assert compare.main(['--law', 'linear_lqr', '--out', str(tmp_path / 'comparison'),
+                         '--page', str(page)]) == 2
+    assert 'has no <!-- comparison:begin -->' in capsys.readouterr().err
+    assert not (tmp_path / 'comparison').exists()
 
 
 def test_a_preset_file_shows_the_laws_it_names(tmp_path, capsys):

@@ -23,6 +23,15 @@ def test_show_prints_the_table_and_bad_input_is_one_line(capsys):
     assert capsys.readouterr().err.count('\n') == 1
 
 
+def test_the_page_shows_the_shipped_table(capsys):
+    """docs/frontier.md's per-start table is the shipped frontier table, as --show prints it
+    (the figures every ratio in the project is taken against)."""
+    from conftest import ROOT
+    assert tool.main(['--show']) == 0
+    shown = capsys.readouterr().out.strip()
+    assert shown in (ROOT / 'docs' / 'frontier.md').read_text()
+
+
 def test_recompute_writes_the_table_format(tmp_path, monkeypatch, capsys):
     """The table writer with the solver replaced by two canned rows (the solver is slow)."""
     plan = {'tensions': np.full(3, 3.0), 'success': True}

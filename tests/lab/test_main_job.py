@@ -19,7 +19,9 @@ FROM_THE_BAG = ('settle_tau', 'final_state', 'theta_min', 'theta_max', 'length_o
 
 def test_the_main_job_writes_its_table_and_plot_from_its_bags(tmp_path, capsys, ros_namespace):
     out = tmp_path / 'main_job'
-    assert main_job.main(['--steps', str(STEPS), '--out', str(out),
+    page = tmp_path / 'README.md'
+    page.write_text('# A page\n<!-- main_job:begin -->\nold\n<!-- main_job:end -->\nafter\n')
+    assert main_job.main(['--steps', str(STEPS), '--out', str(out), '--page', str(page),
                           '--namespace', ros_namespace]) == 0
     rows = json.loads((out / 'main_job.json').read_text())
     assert [row['controller'] for row in rows] == main_job.parser().get_default('law')
@@ -37,3 +39,18 @@ def test_the_main_job_writes_its_table_and_plot_from_its_bags(tmp_path, capsys, 
     table = (out / 'main_job.md').read_text()
     assert table == summary_table(recomputed) + '\n'
     assert table.rstrip() in capsys.readouterr().out
+    # The page shows the headline of the same runs, and the plot beside it.
+    shown = page.read_text()
+    assert 'old' not in shown and shown.endswith('<!-- main_job:end -->\nafter\n')
+    assert main_job.headline(rows) in shown
+    for row in rows:
+        assert f"| `{row['controller']}`" in shown and f"{row['tension_max']:.2f}" in shown
+    assert (tmp_path / main_job.FIGURE).read_bytes() == (out / 'main_job.png').read_bytes()
+
+
+def test_the_main_job_refuses_a_page_without_its_markers_before_it_deploys(tmp_path, capsys):
+    page = tmp_path / 'README.md'
+    page.write_text('# no markers\n')
+    assert main_job.main(['--out', str(tmp_path / 'main_job'), '--page', str(page)]) == 2
+    assert 'has no <!-- main_job:begin -->' in capsys.readouterr().err
+    assert not (tmp_path / 'main_job').exists()

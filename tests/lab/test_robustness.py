@@ -11,9 +11,12 @@ from lab import robustness
 
 
 def test_a_grid_where_nothing_settles_reports_the_final_offsets(tmp_path):
-    assert robustness.main(['--law', 'linear_lqr', '--steps', '200', '--out',
-                            str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / 'robustness.json').read_text())
+    page = tmp_path / 'page.md'
+    page.write_text('<!-- robustness:begin -->\n<!-- robustness:end -->\n')
+    out = tmp_path / 'robustness'
+    assert robustness.main(['--law', 'linear_lqr', '--steps', '200', '--out', str(out),
+                            '--page', str(page)]) == 0
+    rows = json.loads((out / 'robustness.json').read_text())
     nominal = next(r for r in rows if r['control'] == 'bare' and r['case'] == 'nominal')
     x0 = robustness.STARTS[0]
     states, _ = closed_loop(make_controller('linear_lqr', observer={'disturbance': 'none'}),
@@ -21,7 +24,11 @@ def test_a_grid_where_nothing_settles_reports_the_final_offsets(tmp_path):
     first = nominal['starts'][0]
     assert first['settle_tau'] is None
     assert first['final_length_offset'] == pytest.approx(states[-1][2], abs=1e-12)
-    assert f"- ({states[-1][2]:+.3f})" in (tmp_path / 'robustness.md').read_text()
+    assert f"- ({states[-1][2]:+.3f})" in (out / 'robustness.md').read_text()
+    # The page: nothing settled in 200 steps, of the 16 disturbed cases x 6 starts
+    shown = page.read_text()
+    assert robustness.page_tables(rows) in shown
+    assert '| `linear_lqr`, bare | -, -, -, -, -, - | 0 / 48 | 0 | - |' in shown
 
 
 #: The grid's figures for the default law (docs/robustness.md), measured with lab.robustness's

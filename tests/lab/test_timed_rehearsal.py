@@ -76,8 +76,9 @@ class ScheduleLaw(Law):
 def test_the_study_writes_its_table(tmp_path):
     page = tmp_path / 'page.md'
     page.write_text('<!-- timed_rehearsal:begin -->\n<!-- timed_rehearsal:end -->\n')
+    out = tmp_path / 'timed_rehearsal'        # (the markers are named after it)
     assert main(['--slowdown', '1', '--steps', '50', '--law', 'koopman_lqr', '--out',
-                 str(tmp_path), '--page', str(page)]) == 0
+                 str(out), '--page', str(page)]) == 0
     text = page.read_text()
     assert text.count('| [') == 9 and 'compute x1' in text
-    assert (tmp_path / 'timed_rehearsal.json').exists()
+    assert (out / 'timed_rehearsal.json').exists()
