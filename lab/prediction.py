@@ -7,12 +7,16 @@ stored in the model), predicts 30 steps on held-out trajectories (another seed) 
 ``comparison.md``/``.json`` and ``error_vs_step.png``. ``--sweep`` also trains deep models for
 each training-set size and each K (``--sweep-epochs`` each) next to EDMD (and SINDy over sizes),
 writing ``sweep.md``/``.json``, ``error_vs_trajectories.png`` and ``error_vs_lift_dim.png``.
+With ``--page``, the comparison's table goes into the page between the markers named after
+``--out`` and its plot to ``figures/<markers>.png`` beside the page.
 """
 
 import argparse
 import dataclasses
 import json
+import os
 import pathlib
+import shutil
 import sys
 import time
 
@@ -23,6 +27,8 @@ from tsr_koopman_ctrl.learning import baselines, errors
 from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.model import DEFAULT_MODEL, lifted, model_file
 from tsr_koopman_ctrl import arguments
+
+from lab.report import check_page, marker_name, stamp, write_into_page
 
 
 def training_data(metadata, trajectories=None):
@@ -170,7 +176,21 @@ def parser():
     p.add_argument('--sweep-lift-dims', type=arguments.integer(1), nargs='+',
                    default=[8, 16, 24, 36, 48])
     p.add_argument('--sweep-epochs', type=arguments.integer(1), default=5)
+    p.add_argument('--page', default='', help='a docs page to write the comparison table into, '
+                   'between the markers named after --out, and its plot to '
+                   'figures/<the markers>.png beside it')
     return p
+
+
+def figure(page, marker):
+    """Where the plot goes for the page: its figures/ folder, named after the markers."""
+    return os.path.join(os.path.dirname(page), 'figures', f'{marker}.png')
+
+
+def page_table(results, train_size, test_size, model):
+    """The comparison as the page shows it: when and where it ran, then the table."""
+    return (f'`{model}` against the baselines fitted on its own training data, {stamp()}. '
+            + comparison_markdown(results, train_size, test_size))
 
 
 def main(argv=None):
@@ -178,6 +198,10 @@ def main(argv=None):
     out = pathlib.Path(args.out)
     log = lambda text: print(text, flush=True)  # noqa: E731
     try:
+        if args.page:
+            if args.sweep_only:
+                raise ValueError('--page takes the comparison table; the sweep writes none')
+            check_page(args.page, marker_name(args.out))
         lifted.LiftedModel.load(args.model)     # a bad model is one line, before any work
         test, _ = datasets.sample(datasets.SamplingConfig(trajectories=args.test_trajectories,
                                                           seed=args.test_seed))
@@ -192,6 +216,12 @@ def main(argv=None):
         (out / 'comparison.md').write_text(comparison_markdown(results, train_size, len(test)))
         plot_error_vs_step(results, out / 'error_vs_step.png')
         log((out / 'comparison.md').read_text())
+        if args.page:
+            write_into_page(args.page, marker_name(args.out),
+                            page_table(results, train_size, len(test), args.model))
+            path = figure(args.page, marker_name(args.out))
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            shutil.copyfile(out / 'error_vs_step.png', path)
     if args.sweep or args.sweep_only:
         config = lifted.LiftedModel.load(args.model).config
         rows = sweep(config, test, args.sweep_trajectories, args.sweep_lift_dims,

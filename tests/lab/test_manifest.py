@@ -160,4 +160,5 @@ def test_the_pages_generated_by_their_studies(monkeypatch):
     monkeypatch.chdir(ROOT)
     generated = {entry['name'] for entry in ENTRIES if page_option(entry, monkeypatch)}
     assert generated == {'main_job', 'comparison', 'comparison_swing0.4', 'robustness',
-                         'assurance', 'fallback_region', 'timed_rehearsal'}
+                         'assurance', 'fallback_region', 'timed_rehearsal', 'prediction',
+                         'prediction_main_job'}

@@ -9,7 +9,7 @@ import torch
 
 from conftest import tiny_config
 
-from tsr_koopman_ctrl.learning import block_koopman
+from tsr_koopman_ctrl.learning import block_koopman, kinds
 from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
 from tsr_koopman_ctrl.model import lifted, model_file
 from tsr_koopman_ctrl.commands import train
@@ -27,7 +27,7 @@ def test_short_block_training_stays_stable_and_saves_what_it_predicts(
         small_data, tmp_path, flat):
     config = dataclasses.replace(tiny_config(), epochs=1)
     structure = block_koopman.BlockStructure(real_modes=2, radius=0.9, flat=flat)
-    trainer = Trainer(config, tmp_path, progress=False, structure=structure)
+    trainer = Trainer(config, tmp_path, progress=False, kind=kinds.Block(structure))
     net = trainer.fit(small_data.subset(np.arange(200)))
     assert isinstance(net, block_koopman.BlockKoopman) and trainer.history
     a_phi, coupling = observable_block(net)
@@ -88,3 +88,33 @@ def test_train_cli_fine_tunes_a_block_model(tiny_model, tmp_path):
     values = np.linalg.eigvals(model.A)
     local = np.linalg.eigvals(model.local_linear_model()[0])
     assert all(np.min(np.abs(local - v)) < 1e-3 for v in values[np.abs(values) >= 1.0])
+
+
+def test_a_block_model_fine_tuned_without_structure_stays_block(tiny_model, tmp_path):
+    """The kind travels in the model file: `train --init` of a block model builds the block
+    kind again, as `retrain` does; --structure dense turns it dense."""
+    block = tmp_path / 'block'
+    common = ['--epochs', '1', '--trajectories', '100', '--test-trajectories', '20', '--quiet']
+    assert train.main(['--out', str(block), '--init', str(tiny_model[0]), '--structure',
+                       'block', '--real-modes', '2', *common]) == 0
+    record = json.loads((block / 'model.json').read_text())['structure']
+    kind = kinds.from_metadata({'structure': record})
+    assert kind == kinds.Block(block_koopman.BlockStructure(**{
+        k: v for k, v in record.items() if k != 'kind'}))
+    again = tmp_path / 'again'
+    assert train.main(['--out', str(again), '--init', str(block), *common]) == 0
+    assert json.loads((again / 'model.json').read_text())['structure']['kind'] == 'block'
+    dense = tmp_path / 'dense'
+    assert train.main(['--out', str(dense), '--init', str(block), '--structure', 'dense',
+                       *common]) == 0
+    assert 'structure' not in json.loads((dense / 'model.json').read_text())
+
+
+def test_a_model_kind_from_metadata():
+    assert kinds.from_metadata({}) == kinds.Dense()
+    structure = block_koopman.BlockStructure(real_modes=4, radius=0.9)
+    assert kinds.from_metadata({'structure': structure.to_dict()}) == kinds.Block(structure)
+    with pytest.raises(ValueError, match="model kind 'sparse' is unknown"):
+        kinds.from_metadata({'structure': {'kind': 'sparse'}})
+    with pytest.raises(ValueError, match='bad structure record'):
+        kinds.from_metadata({'structure': {'kind': 'block', 'colour': 'red'}})

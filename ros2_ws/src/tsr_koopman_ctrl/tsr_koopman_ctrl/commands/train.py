@@ -7,9 +7,10 @@ Each epoch prints the loss terms and the validation 30-step error; the best epoc
 model; ``<out>/checkpoint.pt`` lets ``--resume`` carry on after an interruption.
 
 ``--init DIR`` fine-tunes a model (its weights, normalisation and config; the flags given
-override the config). ``--structure block`` trains `learning.block_koopman.BlockKoopman`, whose
-observables are stable by construction (what koopman_lqr needs; models/README.md,
-koopman_block); the file it writes is an ordinary model file.
+override the config) as the kind it was trained as (`learning.kinds`). ``--structure block``
+trains `learning.block_koopman.BlockKoopman`, whose observables are stable by construction (what
+koopman_lqr needs; models/README.md, koopman_block); the file it writes is an ordinary model
+file.
 """
 
 import argparse
@@ -19,7 +20,8 @@ import sys
 import time
 
 import torch
-from tsr_koopman_ctrl.learning import data, dataset as datasets
+from tsr_koopman_ctrl.learning import data, dataset as datasets, kinds
+from tsr_koopman_ctrl.learning.block_koopman import BlockStructure
 from tsr_koopman_ctrl.learning.trainer import CHECKPOINT, save_model, Trainer
 from tsr_koopman_ctrl.model import model_file, shipped
 from tsr_koopman_ctrl.commands import cli
@@ -47,13 +49,16 @@ def config_from_args(args, base=None):
     return model_file.KoopmanConfig(**overrides)
 
 
-def structure_from_args(args):
-    """None (the dense model) or the BlockStructure the flags ask for."""
-    if args.structure == 'dense':
-        return None
-    from tsr_koopman_ctrl.learning.block_koopman import BlockStructure
-    return BlockStructure(real_modes=args.real_modes, radius=args.radius, margin=args.margin,
-                          flat=not args.no_flat, observable_input=args.observable_input)
+def kind_from_args(args, init_metadata=None):
+    """The model kind to train: --structure's, else the init's own (`kinds.from_metadata`),
+    else dense."""
+    if args.structure == 'block':
+        return kinds.Block(BlockStructure(
+            real_modes=args.real_modes, radius=args.radius, margin=args.margin,
+            flat=not args.no_flat, observable_input=args.observable_input))
+    if args.structure == 'dense' or init_metadata is None:
+        return kinds.Dense()
+    return kinds.from_metadata(init_metadata)
 
 
 def parser():
@@ -97,9 +102,10 @@ def parser():
     p.add_argument('--resume', action='store_true', help='continue from <out>/checkpoint.pt')
     p.add_argument('--init', help='model directory to fine-tune (its config, with the flags '
                    'given)')
-    p.add_argument('--structure', choices=('dense', 'block'), default='dense',
+    p.add_argument('--structure', choices=tuple(kinds.KINDS),
                    help="lifted A: 'dense' (the paper's) or 'block' (observables stable by "
-                   'construction; learning/block_koopman.py)')
+                   'construction; learning/block_koopman.py); default: the --init model\'s, '
+                   'else dense')
     p.add_argument('--real-modes', type=int, default=12,
                    help='block, new model: real observable eigenvalues (the rest in pairs)')
     p.add_argument('--radius', type=float, default=1.0,
@@ -120,11 +126,11 @@ def main(argv=None):
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        init, base = None, None
+        init, base, init_metadata = None, None, None
         if args.init:       # a directory or a shipped model's name, as retrain takes it
-            init, base, _ = model_file.load(shipped.resolve(args.init))
+            init, base, init_metadata = model_file.load(shipped.resolve(args.init))
         config = config_from_args(args, base)
-        structure = structure_from_args(args)
+        kind = kind_from_args(args, init_metadata)
         # --resume continues the run in --out, finished or not, also with more epochs
         # (docs/learning.md).
         model_file.check_free(args.out, args.overwrite or args.resume)
@@ -133,8 +139,7 @@ def main(argv=None):
             raise ValueError(f'cannot resume: no {os.path.join(args.out, CHECKPOINT)}')
         training = load_data(args)
         test_data = data.test_set(args.test_trajectories, args.test_seed)
-        trainer = Trainer(config, args.out, args.device, progress=not args.quiet,
-                          structure=structure)
+        trainer = Trainer(config, args.out, args.device, progress=not args.quiet, kind=kind)
         start = time.perf_counter()
         model = trainer.fit(training, resume=args.resume, init=init)
         seconds = time.perf_counter() - start

@@ -46,6 +46,54 @@ class Context:
         """The rank that prints and writes files."""
         return self.rank == 0
 
+    # What training asks of its ranks. With one rank each is the single-process computation
+    # (bit for bit what a run without torchrun does); with more, the collectives below.
+
+    def check(self, train, validation, batch_size):
+        """ValueError unless there are windows to train on (on every rank) and to validate
+        on, and the batch splits evenly over the ranks."""
+        if not self.active:
+            if len(train) == 0 or len(validation) == 0:
+                raise ValueError(f'{len(train) + len(validation)} trajectories are too few to '
+                                 'split off validation')
+            return
+        sizes = gather((len(train), len(validation)))
+        if batch_size % self.world_size:
+            raise ValueError(f'batch size {batch_size} does not split evenly over '
+                             f'{self.world_size} ranks')
+        if any(n == 0 for n, _ in sizes) or sum(v for _, v in sizes) == 0:
+            raise ValueError(f'too few windows: training windows per rank '
+                             f'{[n for n, _ in sizes]}, validation {sum(v for _, v in sizes)}')
+
+    def objective(self, model, device):
+        """The training loss of `model`, (x, u) -> (loss, parts): under DDP its wrapped
+        forward, whose backward averages the gradients over the ranks."""
+        if not self.active:
+            return lambda x, u: deep_koopman.total_loss(model, x, u)
+        return wrap(model, device)
+
+    def batches(self, count):
+        """Batches per epoch: the least over the ranks (a rank taking fewer steps than the
+        others would leave them waiting forever)."""
+        return max(1, least(count) if self.active else count)
+
+    def normalisation(self, flat):
+        """(mean, std) per column of the training states of every rank together."""
+        if not self.active:
+            return flat.mean(0), flat.std(0)
+        return mean_std(flat)
+
+    def average(self, values, device):
+        """A dict of floats averaged over the ranks."""
+        return average(values, device) if self.active else values
+
+    def together(self, predicted, truth):
+        """(predicted, truth) of every rank's windows, concatenated."""
+        if not self.active:
+            return predicted, truth
+        parts = gather((predicted, truth))
+        return (np.concatenate([p for p, _ in parts]), np.concatenate([t for _, t in parts]))
+
 
 def launched():
     """The Context torchrun describes in the environment, before (or without) a process group:

@@ -48,7 +48,7 @@ import numpy as np
 from tsr_koopman_ctrl.bag.checks import BagDataError, find_bags
 from tsr_koopman_ctrl.bag.tsr_loop import reading_options
 from tsr_koopman_ctrl.learning import dataset as datasets
-from tsr_koopman_ctrl.learning import distributed, recorded
+from tsr_koopman_ctrl.learning import distributed, kinds, recorded
 from tsr_koopman_ctrl.learning.deep_koopman import DeepKoopman
 from tsr_koopman_ctrl.learning.trainer import evaluate, save_model, Trainer
 from tsr_koopman_ctrl.model import model_file, shipped
@@ -131,20 +131,21 @@ def checked_overrides(values):
 
 
 def configure(options, out):
-    """(config, init record or None, init tensors or None, init config, structure or None): the
-    model to train and where from. A fine-tuned block-structured model stays block-structured
-    (its structure is in its metadata)."""
+    """(config, init record or None, init tensors or None, init config, model kind): the model
+    to train and where from. A fine-tuned model keeps its kind (`kinds.from_metadata`); from
+    scratch it is dense."""
     args = options
-    init, tensors, base, structure = None, None, model_file.KoopmanConfig(), None
+    init, tensors, base, model_kind = None, None, model_file.KoopmanConfig(), kinds.Dense()
     if args.from_scratch and not args.init:
         raise UsageError('--from-scratch needs --init (without --init training is from scratch)')
     if args.init:
         path = shipped.resolve(args.init)
         tensors, base, metadata = model_file.load(path)
-        kept = metadata.get('structure') or {}
-        if kept.get('kind') == 'block' and not args.from_scratch:
-            from tsr_koopman_ctrl.learning.block_koopman import BlockStructure
-            structure = BlockStructure(**{k: v for k, v in kept.items() if k != 'kind'})
+        if not args.from_scratch:
+            try:
+                model_kind = kinds.from_metadata(metadata)
+            except ValueError as error:
+                raise UsageError(f'--init {args.init}: {error}')
         init = {'given': args.init, 'path': os.path.abspath(path),
                 'weights_sha256': model_file.weights_sha256(path),
                 'fine_tuned': not args.from_scratch}
@@ -171,7 +172,7 @@ def configure(options, out):
         config = model_file.KoopmanConfig.from_dict(values)
     except (TypeError, ValueError) as error:
         raise UsageError(f'bad config: {error}')
-    return config, init, tensors, base, structure
+    return config, init, tensors, base, model_kind
 
 
 def loop_reading(args):
@@ -457,7 +458,7 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
     model_file.check_free(out, args.overwrite)
     anchor = parse_anchor(args.anchor)
     loop_reading(args)                  # checked before any work; read_bag_set applies it
-    config, init, init_tensors, init_config, structure = configure(args, out)
+    config, init, init_tensors, init_config, model_kind = configure(args, out)
     if anchor not in ('data', 'init'):
         with_anchor(config, anchor)     # checked before the bags are read; anchored() applies it
     fine_tune = init is not None and init['fine_tuned']
@@ -492,7 +493,8 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
         + (f', {context.world_size} ranks sharing out '
            f'{"bags" if found.by_bags else "windows"}' if context.active else ''), flush=True)
 
-    trainer = Trainer(config, device=args.device, progress=args.progress, structure=structure)
+    trainer = Trainer(config, device=args.device, progress=args.progress,
+                      kind=model_kind)
     tests, before = {}, {}
     if context.is_main:
         tests = test_sets(found, held_out, args, config, say)

@@ -11,9 +11,9 @@ rank (`learning.distributed`), `fit` trains this rank's shard under DistributedD
 with `batch_size / world size` windows per rank, and only rank 0 prints and writes the
 checkpoint; without one (or with one rank) it is the single-process path, unchanged.
 
-`Trainer(..., structure=block_koopman.BlockStructure())` trains a `block_koopman.BlockKoopman`
-(observables stable by construction) instead of the dense model; what it saves is an ordinary
-model file.
+`Trainer(..., kind=kinds.Block())` trains a `block_koopman.BlockKoopman` (observables stable
+by construction) instead of the dense model (`kinds.Dense()`, the default); whatever the kind,
+what it saves is an ordinary model file.
 """
 
 import dataclasses
@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tsr_koopman_ctrl.learning import deep_koopman, distributed, errors
+from tsr_koopman_ctrl.learning import distributed, errors, kinds
 from tsr_koopman_ctrl.model import lifted, model_file
 
 CHECKPOINT = 'checkpoint.pt'
@@ -55,14 +55,11 @@ def predict_states(model, data, device, batch=4096):
 
 
 def evaluate(model, data, device, context=None):
-    """multistep_errors of `model` on `data`; with an active `context` (DDP), on the windows of
-    every rank together (each rank passes its own)."""
-    if context is None or not context.active:
-        return errors.multistep_errors(predict_states(model, data, device), data.x)
-    local = (predict_states(model, data, device) if len(data) else data.x, data.x)
-    parts = distributed.gather(local)
-    return errors.multistep_errors(np.concatenate([p for p, _ in parts]),
-                                   np.concatenate([t for _, t in parts]))
+    """multistep_errors of `model` on `data`; under DDP (`context`), on the windows of every
+    rank together (each rank passes its own)."""
+    context = context or distributed.Context()
+    predicted = predict_states(model, data, device) if len(data) else data.x
+    return errors.multistep_errors(*context.together(predicted, data.x))
 
 
 class Trainer:
@@ -73,9 +70,9 @@ class Trainer:
     """
 
     def __init__(self, config, out_dir=None, device=None, progress=True, shuffle=True,
-                 structure=None):
+                 kind=None):
         self.config = config
-        self.structure = structure
+        self.kind = kind or kinds.Dense()
         self.out_dir = pathlib.Path(out_dir) if out_dir else None
         self.context = distributed.current()
         if self.context.active and device in (None, 'cuda'):
@@ -97,33 +94,15 @@ class Trainer:
             train, val = data.split(1.0 - config.validation_fraction, seed=config.seed)
         else:
             train, val = data, validation
+        context.check(train, val, config.batch_size)
         per_rank = config.batch_size // context.world_size
-        if context.active:
-            sizes = distributed.gather((len(train), len(val)))
-            if config.batch_size % context.world_size:
-                raise ValueError(f'batch size {config.batch_size} does not split evenly over '
-                                 f'{context.world_size} ranks')
-            empty = [rank for rank, (n, _) in enumerate(sizes) if n == 0]
-            if empty or sum(v for _, v in sizes) == 0:
-                raise ValueError(f'too few windows: training windows per rank '
-                                 f'{[n for n, _ in sizes]}, validation '
-                                 f'{sum(v for _, v in sizes)}')
-        elif len(train) == 0 or len(val) == 0:
-            raise ValueError(f'{len(data)} trajectories are too few to split off validation')
-        if self.structure is not None:
-            from tsr_koopman_ctrl.learning import block_koopman
-            mean, std = (None, None) if init is not None else self.normalisation(train)
-            model = block_koopman.build(config, self.structure, init, mean, std)
-        elif init is not None:
-            model = deep_koopman.DeepKoopman.from_numpy(init, config)
-        else:
-            model = deep_koopman.DeepKoopman(config, *self.normalisation(train))
+        # An init keeps its own normalisation; a new model is normalised on the training states.
+        mean, std = (None, None) if init is not None else self.normalisation(train)
+        model = self.kind.build(config, init, mean, std)
         model.to(self.device)
-        objective = distributed.wrap(model, self.device) if context.active else None
+        objective = context.objective(model, self.device)
         optimiser = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
-        batches = max(1, len(train) // per_rank)
-        if context.active:
-            batches = max(1, distributed.least(len(train) // per_rank))
+        batches = context.batches(len(train) // per_rank)
         scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
             optimiser, T_max=config.epochs * batches, eta_min=config.final_learning_rate)
         start_epoch, self.best = 0, {'summed_mse': np.inf}
@@ -149,10 +128,7 @@ class Trainer:
             sums = {}
             for b in bar:
                 index = order[b * per_rank:(b + 1) * per_rank]
-                if objective is None:
-                    loss, parts = deep_koopman.total_loss(model, x[index], u[index])
-                else:
-                    loss, parts = objective(x[index], u[index])
+                loss, parts = objective(x[index], u[index])
                 optimiser.zero_grad()
                 loss.backward()
                 optimiser.step()
@@ -161,8 +137,7 @@ class Trainer:
                     sums[key] = sums.get(key, 0.0) + value
                 bar.set_postfix(loss=f'{loss.item():.4g}')
             means = {k: v / batches for k, v in sums.items()}
-            self.end_epoch(epoch, model, val, distributed.average(means, self.device)
-                           if context.active else means)
+            self.end_epoch(epoch, model, val, context.average(means, self.device))
             self.save_checkpoint(epoch + 1, model, optimiser, scheduler)
         model.load_state_dict({k: torch.as_tensor(v) for k, v in self.best_tensors.items()})
         return model
@@ -170,8 +145,7 @@ class Trainer:
     def normalisation(self, train):
         """(mean, std) of the training states (over every rank under DDP)."""
         flat = train.x.reshape(-1, train.x.shape[2])
-        mean, std = (distributed.mean_std(flat) if self.context.active
-                     else (flat.mean(0), flat.std(0)))
+        mean, std = self.context.normalisation(flat)
         return mean, std + 1e-8
 
     def end_epoch(self, epoch, model, val, train_losses):
@@ -244,8 +218,7 @@ def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, 
     (`dataset.envelope`), which the supervisor checks states against. `train_data` needs only
     `provenance` and len()."""
     test = evaluate(model, test_data, trainer.device)
-    # A structured model stores the A its parameters build, in the file's usual layout.
-    tensors = getattr(model, 'export_tensors', model.to_numpy)()
+    tensors = trainer.kind.tensors(model)
     metadata = {
         'metrics': {'test': test, 'validation_best': trainer.best,
                     'controllability_rank': lifted.controllability_rank(
@@ -258,7 +231,8 @@ def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, 
         'command': command, 'versions': versions(), **(extra or {})}
     if envelope is not None:
         metadata['envelope'] = envelope
-    if trainer.structure is not None:   # how A was built, so a fine-tune can build it again
-        metadata['structure'] = {**trainer.structure.to_dict(), 'real_modes': model.real_modes}
+    record = trainer.kind.record(model)
+    if record is not None:      # how the kind was built, so a fine-tune builds it again
+        metadata['structure'] = record
     model_file.save(out_dir, tensors, config, metadata)
     return metadata
