@@ -38,7 +38,7 @@ def check_page(page, name):
     if content.count(begin) != 1 or content.count(end) != 1 or \
             content.index(begin) > content.index(end):
         raise ValueError(f'{page} has no {begin} ... {end} markers for {name} (name the '
-                         'markers after the --out folder, or --page "" for none)')
+                         'markers after --out, or --page "" for none)')
     return content
 
 
