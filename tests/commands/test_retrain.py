@@ -49,7 +49,8 @@ def init_model(one_thread, tmp_path_factory):
     data, _ = datasets.sample(datasets.SamplingConfig(trajectories=200, seed=5))
     config = model_file.KoopmanConfig(**{**TINY, 'epochs': 2})
     trainer = Trainer(config, progress=False)
-    save_model(out, trainer.fit(data), config, trainer, data, data, 1.0, 'test')
+    save_model(out, trainer.fit(data), config, trainer, data, data, 1.0, 'test',
+               envelope=datasets.envelope(data))
     return out
 
 
@@ -131,6 +132,11 @@ def test_fine_tuning_records_bags_init_and_errors_before_and_after(init_model, b
     new, old = LiftedModel.load(out), LiftedModel.load(init_dir)
     np.testing.assert_array_equal(new.mean, old.mean)
     np.testing.assert_array_equal(new.std, old.std)
+    # The supervisor's envelope: the init's (the bags' states near x = 0 lie inside it) with
+    # the states of the 48 recorded 30-step windows counted in.
+    assert meta['envelope']['states'] == init_meta['envelope']['states'] + 48 * 31
+    for side in (0, 1):
+        np.testing.assert_array_equal(new.envelope[side], old.envelope[side])
     assert 'held_out 30-step summed MSE before (3 windows)' in printed
     assert 'held_out 30-step summed MSE, before -> after' in printed
     assert f'new  {out}: mean' in printed
@@ -254,6 +260,9 @@ def test_from_scratch_with_a_config_and_a_sampled_mix(bags, init_model, tmp_path
     sampled = [p for p in meta['data']['train'] if p['source'] == 'sampled']
     assert len(sampled) == 1 and sampled[0]['ratio'] == 2.0 and sampled[0]['trajectories'] == 12
     assert meta['data']['train_trajectories'] == 6 + info['sampled_trajectories']
+    # From scratch the envelope is the training states' own: recorded and sampled windows.
+    training_states = meta['data']['train_trajectories'] * 31
+    assert meta['envelope']['states'] == training_states
     # Fine-tuning cannot change the network; --from-scratch can.
     code, _, err = run(capsys, '--bags', a, '--init', init_model, '--out', tmp_path / 'n',
                        '--config-json', '{"lift_dim": 6}')

@@ -179,6 +179,18 @@ def envelope(data, quantile=ENVELOPE_QUANTILE):
             'states': int(len(states))}
 
 
+def widest(*boxes):
+    """The box holding every given `envelope` (None ones left out): per component the least low
+    and the greatest high; None if none is given."""
+    boxes = [b for b in boxes if b]
+    if not boxes:
+        return None
+    return {'low': np.min([b['low'] for b in boxes], axis=0).tolist(),
+            'high': np.max([b['high'] for b in boxes], axis=0).tolist(),
+            'quantile': max(b.get('quantile', 0.0) for b in boxes),
+            'states': int(sum(b.get('states', 0) for b in boxes))}
+
+
 def resample(provenance):
     """The sampled data a model's provenance records (its `sample` settings, in order): the
     same trajectories again (the sampler is seeded). ValueError for data of another source

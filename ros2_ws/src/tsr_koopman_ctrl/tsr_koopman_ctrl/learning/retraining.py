@@ -131,11 +131,12 @@ def checked_overrides(values):
 
 
 def configure(options, out):
-    """(config, init record or None, init tensors or None, init config, model kind): the model
-    to train and where from. A fine-tuned model keeps its kind (`kinds.from_metadata`); from
-    scratch it is dense."""
+    """(config, init record or None, init tensors or None, init config, model kind, init
+    envelope or None): the model to train and where from. A fine-tuned model keeps its kind
+    (`kinds.from_metadata`) and the envelope it was trained in; from scratch it is dense."""
     args = options
     init, tensors, base, model_kind = None, None, model_file.KoopmanConfig(), kinds.Dense()
+    envelope = None
     if args.from_scratch and not args.init:
         raise UsageError('--from-scratch needs --init (without --init training is from scratch)')
     if args.init:
@@ -146,6 +147,7 @@ def configure(options, out):
                 model_kind = kinds.from_metadata(metadata)
             except ValueError as error:
                 raise UsageError(f'--init {args.init}: {error}')
+            envelope = metadata.get('envelope')
         init = {'given': args.init, 'path': os.path.abspath(path),
                 'weights_sha256': model_file.weights_sha256(path),
                 'fine_tuned': not args.from_scratch}
@@ -172,7 +174,7 @@ def configure(options, out):
         config = model_file.KoopmanConfig.from_dict(values)
     except (TypeError, ValueError) as error:
         raise UsageError(f'bad config: {error}')
-    return config, init, tensors, base, model_kind
+    return config, init, tensors, base, model_kind, envelope
 
 
 def loop_reading(args):
@@ -458,7 +460,8 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
     model_file.check_free(out, args.overwrite)
     anchor = parse_anchor(args.anchor)
     loop_reading(args)                  # checked before any work; read_bag_set applies it
-    config, init, init_tensors, init_config, model_kind = configure(args, out)
+    config, init, init_tensors, init_config, model_kind, init_envelope = configure(
+        args, out)
     if anchor not in ('data', 'init'):
         with_anchor(config, anchor)     # checked before the bags are read; anchored() applies it
     fine_tune = init is not None and init['fine_tuned']
@@ -493,6 +496,10 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
         + (f', {context.world_size} ranks sharing out '
            f'{"bags" if found.by_bags else "windows"}' if context.active else ''), flush=True)
 
+    # The supervisor's envelope: the states of every rank's training data and, fine-tuned, the
+    # states the init was trained on (it still predicts there).
+    envelope = datasets.widest(init_envelope if fine_tune else None,
+                               *distributed.gather(datasets.envelope(data) if len(data) else None))
     trainer = Trainer(config, device=args.device, progress=args.progress,
                       kind=model_kind)
     tests, before = {}, {}
@@ -542,7 +549,7 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
                           total_recorded + total_sampled)
     test_data = tests.get('held_out', tests.get('table1'))
     save_model(out, model, config, trainer, summary, test_data, seconds, command,
-               extra={'retrain': record})
+               extra={'retrain': record}, envelope=envelope)
     return RetrainResult(model=str(out), errors_before=before, errors_after=after,
                          best_epoch=trainer.best['epoch'], seconds=seconds,
                          anchor_tension=config.anchor_tension, provenance=record)
