@@ -1,7 +1,7 @@
 """The data-driven loop, demonstrated: deploy -> record -> retrain -> redeploy, on a plant that
 differs from the model.
 
-    python -m lab.data_loop --plant actuator_weak [--rounds 2] [--out out/loop]
+    python -m lab.data_loop --plant actuator_weak [--rounds 2] [--out out/loop] [--page PAGE]
 
 Every deployment is the main job's: three processes over DDS, lockstep, recorded by the recorder
 node. Once, with the starting model (the shipped one): the held-out data, deployments with
@@ -12,11 +12,14 @@ training bags so far (`learning.retraining.retrain`, fine-tuning the current mod
 the new
 model without excitation from the comparison starts. Offset-free control stays on throughout.
 The report (<out>/<plant>/report.md, .json, rounds.png) gives per round the 30-step prediction
-error on the held-out closed-loop data, the settle time, swing and integral tension.
+error on the held-out closed-loop data, the settle time, swing and integral tension. With
+--page, the report goes into the page between the markers <out's name>_<plant> and the plot to
+figures/<the same name>.png beside it.
 """
 
 import argparse
 import os
+import shutil
 import sys
 
 import numpy as np
@@ -32,9 +35,10 @@ from tsr_koopman_ctrl.learning.recorded import DEFAULT_STEPS as WINDOW_STEPS
 from tsr_koopman_ctrl.bag.checks import find_bags
 from tsr_koopman_ctrl.learning.recorded import read_bags, windows_dataset
 from tsr_koopman_ctrl.learning.retraining import retrain, RetrainOptions
-from tsr_koopman_ctrl.model import DEFAULT_MODEL, LiftedModel
+from tsr_koopman_ctrl.control.registry import law_class
+from tsr_koopman_ctrl.model import LiftedModel
 
-from lab.report import write_results
+from lab.report import check_page, marker_name, stamp, write_into_page, write_results
 
 EXCITATION = {'kind': 'prbs', 'amplitude': 0.3, 'hold': 20}
 
@@ -44,7 +48,7 @@ def deployments(args, label, model, starts, plant, excite, seed):
     bags = os.path.join(args.workdir, 'bags', label)
     paths = []
     for index, x0 in enumerate(starts):
-        settings = {args.law: {'model': model}}
+        settings = {args.law: {'model': model}} if model else {}
         if excite:
             settings['excitation'] = dict(EXCITATION, seed=seed + index)
         name = f'{label}_x{index}'
@@ -56,17 +60,19 @@ def deployments(args, label, model, starts, plant, excite, seed):
 
 
 def loop_figures(bags):
-    """Mean settle tau (None if any start did not settle), max swing, mean integral tension,
-    read back from the bags."""
-    rows = []
+    """Mean settle tau (None if any start did not settle), max swing, mean integral tension
+    and the share of the steps the supervisor's fallback flew, read back from the bags."""
+    rows, fallback, steps = [], 0, 0
     for bag in bags:
         loop = read_loop(bag)
         rows.append(run_figures(loop.tau, loop.x, loop.u[:-1], halted=loop.halted))
+        fallback, steps = fallback + loop.fallback_steps, steps + len(loop.u)
     settles = [r['settle_tau'] for r in rows]
     return {'settle_tau': [s for s in settles],
             'mean_settle_tau': None if None in settles else float(np.mean(settles)),
             'swing': max(r['swing'] for r in rows),
-            'tension_integral': float(np.mean([r['tension_integral'] for r in rows]))}
+            'tension_integral': float(np.mean([r['tension_integral'] for r in rows])),
+            'fallback_share': fallback / steps if steps else 0.0}
 
 
 def prediction_error(model, held_out):
@@ -123,15 +129,18 @@ def report(result, workdir):
 
     def cell(value, digits=2):
         return '-' if value is None else f'{value:.{digits}f}'
-    lines = [f"Data-driven loop on `{result['plant']}` with `{result['law']}` (offset-free), "
-             f"starting from `{result['start_model']}`. Settle tau: mean over the "
+    lines = [f"Data-driven loop on `{result['plant']}` with `{result['law']}` (offset-free, as "
+             f"`deploy` flies it), starting from `{result['start_model']}`, {stamp()}. Settle "
+             "tau: mean over the "
              f'{len(COMPARISON_STARTS)} comparison starts; the same law and start model on the '
              f'nominal plant: {cell(nominal)} tau. Prediction error: 30-step summed MSE on the '
              f'held-out closed-loop windows of this plant ({len(HELD_OUT_STARTS)} deployments '
-             'from the held-out starts, never trained on).', '',
+             'from the held-out starts, never trained on). Fallback flew: the share of the '
+             "steps the runtime-assurance supervisor's fallback flew (`physics_nmpc` for the "
+             'NMPC) instead of the learned law.', '',
              '| round | model | held-out error (mean / median / diverged) | error vs round 0 '
-             '| settle tau (mean) | per start | swing | integral u dtau |',
-             '|---|---|---|---|---|---|---|---|']
+             '| settle tau (mean) | per start | swing | integral u dtau | fallback flew |',
+             '|---|---|---|---|---|---|---|---|---|']
     first = rounds[0]['held_out_error']['summed_mse']
     for r in rounds:
         e = r['held_out_error']
@@ -140,11 +149,22 @@ def report(result, workdir):
                      f"{100 * e['diverged_fraction']:.0f}% | {first / e['summed_mse']:.2f}x "
                      f"lower | {cell(r['mean_settle_tau'])} | "
                      f"{', '.join(cell(s) for s in r['settle_tau'])} | {r['swing']:.3f} | "
-                     f"{r['tension_integral']:.2f} |")
+                     f"{r['tension_integral']:.2f} | {100 * r['fallback_share']:.0f}% |")
     text = '\n'.join(lines) + '\n'
     write_results(workdir, 'report', result, text)
     plot_rounds(rounds, nominal, os.path.join(workdir, 'rounds.png'), result['plant'])
     print(text)
+    return text
+
+
+def plant_name(plant):
+    """A plant's name: a variant's, or a plant file's without its folder and extension."""
+    return os.path.splitext(os.path.basename(os.path.normpath(plant)))[0]
+
+
+def markers(args):
+    """The page markers of a loop: the --out folder's name and the plant's."""
+    return f'{marker_name(args.out)}_{plant_name(args.plant)}'
 
 
 def plot_rounds(rounds, nominal, path, plant):
@@ -175,8 +195,9 @@ def parser():
     p = argparse.ArgumentParser(prog='loop', description=__doc__.split('\n\n')[0])
     p.add_argument('--plant', required=True, help='plant variant (tsr_sim config/plants)')
     p.add_argument('--rounds', type=arguments.integer(1), default=2)
-    p.add_argument('--law', default='koopman_mpc', choices=['koopman_mpc', 'koopman_lqr'])
-    p.add_argument('--model', default=DEFAULT_MODEL, help='the start model')
+    p.add_argument('--law', default='koopman_nmpc',
+                   choices=['koopman_nmpc', 'koopman_mpc', 'koopman_lqr'])
+    p.add_argument('--model', help="the start model (default: the law's own)")
     p.add_argument('--steps', type=arguments.STEPS, default=2000)
     p.add_argument('--epochs', type=arguments.integer(1), default=10,
                    help='fine-tuning epochs per round')
@@ -185,6 +206,8 @@ def parser():
     p.add_argument('--out', default=os.path.join('out', 'loop'), type=arguments.output_dir)
     p.add_argument('--namespace', help="the nodes' ROS namespace (default: the root; every "
                    'deployment has a DDS domain of its own)')
+    p.add_argument('--page', default='', help='a docs page to write the report into, between '
+                   "the markers <--out's name>_<plant>, and the plot to figures/ beside it")
     return p
 
 
@@ -192,12 +215,15 @@ def main(argv=None):
     p = parser()
     args = p.parse_args(argv)
     # A plant given as a file gets the directory of its name without the extension.
-    args.workdir = os.path.join(
-        args.out, os.path.splitext(os.path.basename(os.path.normpath(args.plant)))[0])
+    args.workdir = os.path.join(args.out, plant_name(args.plant))
     # Checked before the first deployment, which takes minutes, creates anything.
+    if args.model is None:
+        args.model = law_class(args.law).Settings().model
     try:
         plant_parameters(args.plant)
         LiftedModel.load(args.model)
+        if args.page:
+            check_page(args.page, markers(args))
     except ValueError as error:
         p.error(str(error))
     if args.steps < WINDOW_STEPS:
@@ -215,7 +241,12 @@ def main(argv=None):
     except (DeploymentError, RuntimeError, ValueError) as error:
         print(f'loop: {error}', file=sys.stderr)
         return 1
-    report(result, args.workdir)
+    text = report(result, args.workdir)
+    if args.page:
+        write_into_page(args.page, markers(args), text)
+        figure = os.path.join(os.path.dirname(args.page), 'figures', f'{markers(args)}.png')
+        os.makedirs(os.path.dirname(figure), exist_ok=True)
+        shutil.copyfile(os.path.join(args.workdir, 'rounds.png'), figure)
     return 0
 
 

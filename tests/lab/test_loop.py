@@ -21,13 +21,27 @@ pytestmark = pytest.mark.ros
 def test_one_round_deploys_records_retrains_and_reports(tmp_path, ros_namespace):
     """Every deployment on a domain of its own (Deployment reserves one), in the test's
     namespace."""
+    out = tmp_path / 'loop'
+    marker = 'loop_actuator_weak'
+    page = tmp_path / 'docs' / 'data_loop.md'
+    page.parent.mkdir()
+    page.write_text(f'intro\n<!-- {marker}:begin -->\nstale\n<!-- {marker}:end -->\nend\n')
     assert loop.main(['--plant', 'actuator_weak', '--rounds', '1', '--steps', '300',
-                      '--epochs', '1', '--out', str(tmp_path), '--namespace', ros_namespace]) == 0
-    work = tmp_path / 'actuator_weak'
+                      '--epochs', '1', '--out', str(out), '--namespace', ros_namespace,
+                      '--page', str(page)]) == 0
+    work = out / 'actuator_weak'
     result = json.loads((work / 'report.json').read_text())
     assert [r['round'] for r in result['rounds']] == [0, 1]
+    # The main job's law from its own model, as deploy flies it.
+    assert result['law'] == 'koopman_nmpc' and result['start_model'] == 'koopman_retrieval'
     assert (work / 'rounds.png').stat().st_size > 0
-    assert '| 1 | `round1` |' in (work / 'report.md').read_text()
+    report = (work / 'report.md').read_text()
+    assert '| 1 | `round1` |' in report
+    # The page shows the report and the plot, beside it in figures/.
+    assert page.read_text() == (f'intro\n<!-- {marker}:begin -->\n{report.rstrip()}\n'
+                                f'<!-- {marker}:end -->\nend\n')
+    figure = page.parent / 'figures' / f'{marker}.png'
+    assert figure.read_bytes() == (work / 'rounds.png').read_bytes()
 
     # The bags say what ran: the plant variant, the excitation on the training runs only.
     train = sorted((work / 'bags' / 'round1_train').iterdir())
@@ -54,3 +68,9 @@ def test_one_round_deploys_records_retrains_and_reports(tmp_path, ros_namespace)
         error = multistep_errors(model.predict(data.x[:, 0], data.u), data.x)
         reported = entry['held_out_error']['summed_mse']
         assert reported == pytest.approx(error['summed_mse'], rel=1e-9)
+    # Which law flew is read back from the bags: the fallback's share of the steps.
+    evaluated = sorted((work / 'bags' / 'round1_eval').iterdir())
+    loops = [read_loop(str(bag)) for bag in evaluated]
+    share = sum(r.fallback_steps for r in loops) / sum(len(r.u) for r in loops)
+    assert result['rounds'][1]['fallback_share'] == pytest.approx(share)
+    assert f"| {100 * share:.0f}% |" in report.splitlines()[-1]

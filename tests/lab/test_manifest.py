@@ -143,9 +143,10 @@ def markers(entry, args):
     """The markers a command writes between: named after its --out folder (a study) or its
     --out file's name without the suffix (a benchmark)."""
     from lab.report import marker_name
-    if entry['study'].startswith('lab.'):
-        return marker_name(args.out)
-    return os.path.splitext(os.path.basename(args.out))[0]
+    if not entry['study'].startswith('lab.'):
+        return os.path.splitext(os.path.basename(args.out))[0]
+    study = importlib.import_module(entry['study'])
+    return study.markers(args) if hasattr(study, 'markers') else marker_name(args.out)
 
 
 @pytest.mark.parametrize('entry', ENTRIES, ids=lambda entry: entry['name'])
@@ -171,4 +172,6 @@ def test_the_pages_generated_by_their_studies(monkeypatch):
     assert generated == {'main_job', 'comparison', 'comparison_swing0.4', 'robustness',
                          'assurance', 'fallback_region', 'timed_rehearsal', 'prediction',
                          'prediction_main_job', 'nmpc_nominal', 'nmpc_swing0.4',
-                         'nmpc_robustness'}
+                         'nmpc_robustness', 'data_loop_actuator_weak',
+                         'data_loop_actuator_strong', 'data_loop_heavy_robot',
+                         'data_loop_eccentric_orbit'}
