@@ -256,3 +256,49 @@ def test_the_shipped_models_carry_an_envelope_that_holds_every_start():
         starts = np.array(COMPARISON_STARTS + HELD_OUT_STARTS)
         width = high - low
         assert np.all(starts >= low - 0.1 * width) and np.all(starts <= high + 0.1 * width)
+
+
+class LostWhenFlown(Scripted):
+    """Trusted while another law's tension is flown, faulting on every step after its own
+    was: a model that is wrong where it takes the plant (near the target, say)."""
+
+    lost = True
+
+    def compute(self, x):
+        own = self.sent and self.sent[-1] == self.tension
+        self.falls = {self.calls} if self.lost and own else set()
+        return super().compute(x)
+
+
+def fallback_stretches(steps):
+    """The lengths of the runs of steps the fallback flew."""
+    flying = ''.join('f' if f == FALLBACK else 'l' for _, f, _ in steps)
+    return [len(run) for run in flying.split('l') if run]
+
+
+def test_a_law_lost_again_on_probation_waits_twice_as_long_each_time():
+    """Taking back and losing the plant again within its probation doubles the wait, up to
+    takeback_backoff times takeback_steps; without the backoff it would take the plant back
+    every few steps for ever."""
+    supervisor = Supervisor(LostWhenFlown(2.0), Scripted(1.0), takeback_steps=2,
+                            takeback_backoff=16)
+    steps = flown(supervisor, 240)
+    assert fallback_stretches(steps)[:7] == [2, 4, 8, 16, 32, 32, 32]
+    assert supervisor.diagnostics()['supervisor_takeback_steps'] == 32
+    plain = Supervisor(LostWhenFlown(2.0), Scripted(1.0), takeback_steps=2,
+                       takeback_backoff=1)
+    assert set(fallback_stretches(flown(plain, 240))) == {2}
+
+
+def test_a_whole_probation_trusted_restores_the_hysteresis():
+    """Once the learned law has flown as long as it waited, trusted, the next wait is
+    takeback_steps again."""
+    learned = LostWhenFlown(2.0)
+    supervisor = Supervisor(learned, Scripted(1.0), takeback_steps=2, takeback_backoff=16)
+    flown(supervisor, 23)                     # waits of 2, 4, 8 and lost again: 16 now
+    assert supervisor.takeback == 16 and supervisor.flying == FALLBACK
+    learned.lost = False                      # a model right where it takes the plant
+    flown(supervisor, 16)                     # the wait: the learned law takes back
+    assert supervisor.flying == LEARNED and supervisor.takeback == 16
+    flown(supervisor, 16)                     # a whole probation, trusted
+    assert supervisor.takeback == 2 and supervisor.flying == LEARNED

@@ -9,8 +9,13 @@ flown) and takes back, with hysteresis, once it has been trusted for `takeback_s
 in a row; when it faults while the fallback flies, it rests for `takeback_steps` steps (it sees
 the states, its observer keeps up, it plans nothing: a lost learned law would cold-start every
 step) and then starts afresh on probation, from the plan the fallback made for that state (one
-RTI step: `Law.start_from`), not from a cold start. The fallback computes every step too
-(`shadow`), so it takes over warm: its plan is the one it would be flying.
+RTI step: `Law.start_from`), not from a cold start. A learned law distrusted again within
+its probation (the wait it just served, after taking back) waits twice as long the next time,
+up to `takeback_backoff` times `takeback_steps`, and back to `takeback_steps` once it has
+flown a whole probation trusted: a model that is wrong near the target would otherwise take
+back and lose the plant again every few tens of steps, and the plant would never settle. The
+fallback computes every step too (`shadow`), so it takes over warm: its plan is the one it
+would be flying.
 
 What the monitor watches (each a reason on /diagnostics and in the bag):
 
@@ -71,6 +76,10 @@ class SupervisorSettings(LawSettings):
                                           low=0.0, high=1e6)
     takeback_steps: int = setting(20, 'steps in a row the learned law must be trusted before '
                                   'it takes back from the fallback', low=1, high=10 ** 7)
+    takeback_backoff: int = setting(16, 'a learned law distrusted again within its probation '
+                                    'after taking back waits twice as long the next time, up '
+                                    'to this many times takeback_steps (1: always '
+                                    'takeback_steps)', low=1, high=10 ** 6)
     shadow: str = setting('armed', "when the fallback plans beside the learned law, so that it "
                           "takes over warm: 'armed' (for arm_steps steps after each fault of "
                           "the learned law), 'always', or 'never' (it starts cold when it "
@@ -112,6 +121,8 @@ class Supervisor(Law):
         self.trusted_steps = 0
         self.faults = []             # (step, reason) of the learned law's recent faults
         self.resting = 0             # steps the untrusted learned law still rests
+        self.takeback = self.supervisor_settings.takeback_steps   # the hysteresis now
+        self.flown = None            # steps the learned law has flown since it took back
         self.armed = 0               # steps the fallback still plans in the shadow
         self.steps = 0
         self.fallbacks = 0           # steps where the law that flew fell back
@@ -143,13 +154,22 @@ class Supervisor(Law):
                 self.reasons[self.monitor] += 1
                 self.trusted_steps = 0
                 if self.flying == LEARNED:
+                    if self.flown is not None and self.flown < self.takeback:
+                        # Lost again on probation: the next wait is longer.
+                        self.takeback = min(2 * self.takeback,
+                                            s.takeback_backoff * s.takeback_steps)
                     self.switch(FALLBACK)
                 else:
-                    self.resting = s.takeback_steps
+                    self.resting = self.takeback
             else:
                 self.trusted_steps += 1
-                if self.flying == FALLBACK and self.trusted_steps >= s.takeback_steps:
+                if self.flying == FALLBACK and self.trusted_steps >= self.takeback:
                     self.switch(LEARNED)
+                    self.flown = 0
+                elif self.flying == LEARNED and self.flown is not None:
+                    self.flown += 1
+                    if self.flown >= self.takeback:     # a whole probation trusted
+                        self.takeback, self.flown = s.takeback_steps, None
         if fallback is None and (self.flying == FALLBACK or (s.shadow == 'armed'
                                                              and self.armed)):
             fallback = self.run(self.fallback, x)       # armed, or taking over, this step
@@ -193,6 +213,8 @@ class Supervisor(Law):
         self.flying = flying
         self.switches += 1
         self.trusted_steps = 0
+        if flying == FALLBACK:
+            self.flown = None
 
     def judge(self, x, tension, fell_back):
         """'' if the learned law is trusted this step, else the reason it is not."""
@@ -241,4 +263,5 @@ class Supervisor(Law):
     def diagnostics(self):
         return {**self.learned.diagnostics(), 'flying': self.flying,
                 'monitor': self.monitor or 'trusted', 'supervisor_switches': self.switches,
+                'supervisor_takeback_steps': self.takeback,
                 **{f'untrusted_{reason}': n for reason, n in self.reasons.items()}}
