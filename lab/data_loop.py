@@ -19,7 +19,6 @@ figures/<the same name>.png beside it.
 
 import argparse
 import os
-import shutil
 import sys
 
 import numpy as np
@@ -38,7 +37,8 @@ from tsr_koopman_ctrl.learning.retraining import retrain, RetrainOptions
 from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.model import LiftedModel
 
-from lab.report import check_page, marker_name, stamp, write_into_page, write_results
+from lab.report import (check_page, copy_figure, marker_name, stamp, write_into_page,
+                        write_results)
 
 EXCITATION = {'kind': 'prbs', 'amplitude': 0.3, 'hold': 20}
 
@@ -244,9 +244,8 @@ def main(argv=None):
     text = report(result, args.workdir)
     if args.page:
         write_into_page(args.page, markers(args), text)
-        figure = os.path.join(os.path.dirname(args.page), 'figures', f'{markers(args)}.png')
-        os.makedirs(os.path.dirname(figure), exist_ok=True)
-        shutil.copyfile(os.path.join(args.workdir, 'rounds.png'), figure)
+        copy_figure(args.page, os.path.join(args.workdir, 'rounds.png'),
+                    os.path.join('figures', f'{markers(args)}.png'))
     return 0
 
 

@@ -13,10 +13,9 @@ between its markers and the plot to docs/figures/main_job.png beside it.
 import argparse
 import json
 import os
-import shutil
 import sys
 
-from lab.report import check_page, marker_name, stamp, write_into_page
+from lab.report import check_page, copy_figure, marker_name, stamp, write_into_page
 from tsr_koopman_ctrl import arguments
 from tsr_koopman_ctrl.control.registry import CONTROLLERS, DEFAULT_LAW
 from tsr_koopman_ctrl.deployment import (Deployment, DeploymentError, settle_cell,
@@ -71,9 +70,7 @@ def main(argv=None):
                      title='Deployed over DDS from the paper\'s start')
     if args.page:
         write_into_page(args.page, marker_name(args.out), headline(rows))
-        figure = os.path.join(os.path.dirname(args.page), FIGURE)
-        os.makedirs(os.path.dirname(figure), exist_ok=True)
-        shutil.copyfile(os.path.join(args.out, 'main_job.png'), figure)
+        copy_figure(args.page, os.path.join(args.out, 'main_job.png'), FIGURE)
     print(table)
     return 0
 

@@ -16,7 +16,6 @@ import dataclasses
 import json
 import os
 import pathlib
-import shutil
 import sys
 import time
 
@@ -28,7 +27,7 @@ from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.model import DEFAULT_MODEL, lifted, model_file
 from tsr_koopman_ctrl import arguments
 
-from lab.report import check_page, marker_name, stamp, write_into_page
+from lab.report import check_page, copy_figure, marker_name, stamp, write_into_page
 
 
 def training_data(metadata, trajectories=None):
@@ -184,7 +183,11 @@ def parser():
 
 def figure(page, marker):
     """Where the plot goes for the page: its figures/ folder, named after the markers."""
-    return os.path.join(os.path.dirname(page), 'figures', f'{marker}.png')
+    return os.path.join(os.path.dirname(page), figure_name(marker))
+
+
+def figure_name(marker):
+    return os.path.join('figures', f'{marker}.png')
 
 
 def page_table(results, train_size, test_size, model):
@@ -219,9 +222,8 @@ def main(argv=None):
         if args.page:
             write_into_page(args.page, marker_name(args.out),
                             page_table(results, train_size, len(test), args.model))
-            path = figure(args.page, marker_name(args.out))
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            shutil.copyfile(out / 'error_vs_step.png', path)
+            copy_figure(args.page, out / 'error_vs_step.png',
+                        figure_name(marker_name(args.out)))
     if args.sweep or args.sweep_only:
         config = lifted.LiftedModel.load(args.model).config
         rows = sweep(config, test, args.sweep_trajectories, args.sweep_lift_dims,

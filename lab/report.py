@@ -66,3 +66,12 @@ def write_into_page(page, name, text):
     _, tail = rest.split(end)
     with open(page, 'w') as f:
         f.write(f'{head}{begin}\n{text.rstrip()}\n{end}{tail}')
+
+
+def copy_figure(page, source, name):
+    """Copy a study's plot `source` to `name` (a path relative to the page's folder, e.g.
+    figures/prediction.png), where the page links it; the folder is made if needed."""
+    path = os.path.join(os.path.dirname(page), name)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    shutil.copyfile(source, path)
+    return path

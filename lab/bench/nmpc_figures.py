@@ -36,6 +36,7 @@ from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, frontier_tau, HELD_O
 # Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from lab.bench.yardstick import seconds as yardstick  # noqa: E402
+from lab.compare import HELD_TOLERANCE  # noqa: E402
 from lab.report import check_page, stamp, write_into_page  # noqa: E402
 
 STARTS = COMPARISON_STARTS + HELD_OUT_STARTS
@@ -67,10 +68,6 @@ def run(law_name, settings, start, steps, bare, plant=None, supervised=False):
 
 def fmt(value, spec='.3f'):
     return '-' if value is None else format(value, spec)
-
-
-#: A run held the swing bound when its swing stayed within it by this much.
-HELD_TOLERANCE = 0.005
 
 
 def start_label(start):
@@ -123,8 +120,8 @@ def swing_tables(rows, laws, bound=0.4):
              f'stayed within {bound} (+ {HELD_TOLERANCE}); else how it did not:', '',
              '| start | ' + ' | '.join(f'`{law}`' for law in laws) + ' |',
              '|---' * (1 + len(laws)) + '|']
-    held = {law: 0 for law in laws}
-    for start, cells in by_start(rows, laws).items():
+    held, table = {law: 0 for law in laws}, by_start(rows, laws)
+    for start, cells in table.items():
         parts = []
         for law in laws:
             r = cells[law]
@@ -139,8 +136,8 @@ def swing_tables(rows, laws, bound=0.4):
                 parts.append(f"**not held**: swing {r['swing']:.2f}, {outcome}, "
                              f"{r['fallbacks']} fallback{plural}")
         lines.append(f'| {start_label(start)} | ' + ' | '.join(parts) + ' |')
-    count = len(by_start(rows, laws))
-    lines += ['', 'Held: ' + ', '.join(f'`{law}` {held[law]} of {count}' for law in laws) + '.']
+    lines += ['', 'Held: ' + ', '.join(f'`{law}` {held[law]} of {len(table)}' for law in laws)
+              + '.']
     return lines
 
 
