@@ -115,6 +115,19 @@ def error_cells(r):
 
 
 ERROR_COLUMNS = 'summed MSE (30 steps, mean) | median | diverged'
+SHORT_COLUMNS = 'short | rest | share'
+
+
+def short_cells(r):
+    """The summed MSE of the short-tether windows, of the rest, and the short ones' share."""
+    split = r['short_tether']
+
+    def cell(value, form):
+        return '-' if value is None else format(value, form)
+
+    share = '-' if split['share'] is None else f"{100.0 * split['share']:.0f}%"
+    return (f"{cell(split['summed_mse'], '.4g')} | {cell(split['rest_summed_mse'], '.4g')} | "
+            f'{share}')
 
 
 def comparison_markdown(results, train_size, test_size):
@@ -125,12 +138,17 @@ def comparison_markdown(results, train_size, test_size):
              'means over the windows that did not diverge (|x| > 1e3 or non-finite), the '
              'median over all.', '',
              f'| method | {ERROR_COLUMNS} | MSE at step 30 | '
-             + ' | '.join(f'summed {n}' for n in names) + ' | fit s |',
-             '|---' * (6 + len(names)) + '|']
+             + ' | '.join(f'summed {n}' for n in names)
+             + f' | {SHORT_COLUMNS} | fit s |',
+             '|---' * (9 + len(names)) + '|']
     for method, r in results.items():
         lines.append(f"| {method} | {error_cells(r)} | {r['final_mse']:.4g} | "
                      + ' | '.join(f"{r['summed_mse_per_component'][n]:.3g}" for n in names)
-                     + f" | {r['fit_seconds']} |")
+                     + f" | {short_cells(r)} | {r['fit_seconds']} |")
+    short = next(iter(results.values()))['short_tether']['fraction']
+    lines += ['', f'{100.0 * short:.1f}% of the test windows have a tether that dips below '
+              f'l = {errors.SHORT_TETHER:g}; "short" is the mean over those, "rest" over the '
+              'others, "share" the short windows\' part of the summed error.']
     return '\n'.join(lines) + '\n'
 
 

@@ -47,6 +47,22 @@ def test_multistep_errors_by_hand():
     assert everything_diverged['diverged_fraction'] == 1.0
 
 
+def test_the_short_tether_windows_are_split_from_the_rest_by_hand():
+    truth = np.zeros((4, 3, 4))
+    truth[0, 2, 2] = -0.95          # l = 0.05 at the last step: a short-tether window
+    truth[1, 1, 2] = -0.85          # l = 0.15: not one
+    predicted = truth.copy()
+    predicted[0, 1, 1] = 2.0        # window sum 4 / 4 = 1
+    predicted[1, 1, 1] = 1.0        # window sum 0.25
+    predicted[2, 1, 1] = np.inf     # diverged: in neither mean
+    split = errors.multistep_errors(predicted, truth)['short_tether']
+    assert split['fraction'] == pytest.approx(0.25)
+    assert split['summed_mse'] == pytest.approx(1.0)
+    assert split['rest_summed_mse'] == pytest.approx(0.25 / 2)     # windows 1 and 3
+    assert split['share'] == pytest.approx(1.0 / 1.25)
+    assert errors.multistep_errors(truth[1:], truth[1:])['short_tether']['summed_mse'] is None
+
+
 def quadratic_system_data(x0, steps):
     """x+ = x + 0.1 x^2 per component (u has no effect): blows up from |x| > ~1 in a few tens
     of steps, and SINDy with quadratic terms recovers it exactly."""

@@ -38,6 +38,7 @@ def config_from_args(args, base=None):
     """The defaults (or `base`, an init's config) with the flags given."""
     overrides = {'epochs': args.epochs, 'weight_equilibrium': args.weight_equilibrium,
                  'weight_one_step': args.weight_one_step,
+                 'momentum_power': args.momentum_power, 'weight_physical': args.weight_physical,
                  'anchor_equilibrium': args.anchor_equilibrium or None,
                  'lift_dim': args.lift_dim, 'hidden': args.hidden, 'layers': args.layers,
                  'input_hidden': args.input_hidden, 'input_layers': args.input_layers,
@@ -81,6 +82,12 @@ def parser():
     p.add_argument('--weight-one-step', type=float,
                    help='weight of the one-step error from every measured state (not in the '
                    'paper; default 0)')
+    p.add_argument('--momentum-power', type=cli.number(minimum=0.0, maximum=2.0),
+                   help="p: the model evolves l^p (1 + theta') in place of theta' (not in the "
+                   'paper; default 0, the physical state; model/coordinates.py)')
+    p.add_argument('--weight-physical', type=cli.number(minimum=0.0),
+                   help='weight of the reconstruction loss on the physical state read back from '
+                   "the model's (not in the paper; default 0)")
     p.add_argument('--anchor-equilibrium', action='store_true',
                    help='make x = 0, u = 3 an exact fixed point of the lifted model (not in the '
                    'paper)')

@@ -38,9 +38,16 @@ class KoopmanLqrSettings(LawSettings):
     q_cross: tuple = cross_weight_setting(search_bound=1.0)
 
 
-def load_model(model):
-    """A LiftedModel as given, or loaded from a directory or a shipped model's name."""
-    return model if isinstance(model, LiftedModel) else LiftedModel.load(model)
+def load_model(model, linear=False):
+    """A LiftedModel as given, or loaded from a directory or a shipped model's name.
+    `linear`: for a law that regulates C z as the physical state, so refuses a model that
+    evolves a scaled momentum in its place (`model.coordinates`)."""
+    model = model if isinstance(model, LiftedModel) else LiftedModel.load(model)
+    if linear and model.power:
+        raise ValueError(f'model {model.path or "given"} evolves the scaled momentum '
+                         f'l^{model.power:g} (1 + theta\') in place of theta\': the linear laws '
+                         f'regulate the physical state; fly it with koopman_nmpc')
+    return model
 
 
 def lifted_state_weight(model, settings):
@@ -63,7 +70,7 @@ class KoopmanLqr(Law):
 
     def __init__(self, settings=None, **kwargs):
         super().__init__(settings, **kwargs)
-        self.model = load_model(self.settings.model)
+        self.model = load_model(self.settings.model, linear=True)
         self.q = lifted_state_weight(self.model, self.settings)
         self.gain, self.riccati = discrete_lqr_gain(self.model.A, self.model.B, self.q,
                                                     self.settings.r)

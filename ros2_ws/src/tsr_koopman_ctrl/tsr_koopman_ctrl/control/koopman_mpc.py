@@ -84,7 +84,7 @@ class KoopmanMpc(Law):
     def __init__(self, settings=None, **kwargs):
         super().__init__(settings, **kwargs)
         s = self.settings
-        self.model, self.horizon = load_model(s.model), s.horizon
+        self.model, self.horizon = load_model(s.model, linear=True), s.horizon
         a, b = self.model.A, self.model.B
         nz, n_steps = a.shape[0], self.horizon
         q = lifted_state_weight(self.model, s)

@@ -48,9 +48,8 @@ def physics_predictor(h=dynamics.PAPER_STEP, substeps=10):
 def koopman_predictor(model):
     """F from the learned lifted model: x+ = C (A psi_x(x) + B psi_u(x, u))."""
     def predict(x, u):
-        z = model.psi_x(x)
-        nxt = z @ model.A.T + model.psi_u(x, u)[..., None] * model.B[:, 0]
-        return nxt[..., :model.n]
+        batch = np.atleast_2d(x)
+        return model.step(batch, np.broadcast_to(u, (len(batch),))).reshape(np.shape(x))
     return predict
 
 

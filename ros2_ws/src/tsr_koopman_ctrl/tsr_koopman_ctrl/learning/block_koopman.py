@@ -229,6 +229,8 @@ def from_tensors(tensors, config, structure=None):
 def build(config, structure, init=None, state_mean=None, state_std=None):
     """The trainer's BlockKoopman: from a model file's tensors `init`, else new with the given
     state normalisation."""
+    if config.momentum_power:
+        raise ValueError('a block model evolves the physical state: momentum_power must be 0')
     if init is not None:
         return from_tensors(init, config, structure)
     return BlockKoopman(config, state_mean, state_std, structure)

@@ -23,6 +23,11 @@ sum (docs/paper_notes.md explains why the paper's terms are changed):
 - L_step (not in the paper, weight 0 by default): `one_step_error`, the relative error of the
   one-step prediction from every measured state of the batch.
 
+- L_phys (not in the paper, weight 0 by default): L_rec on the physical state read back from the
+  model's own, each component scaled by its batch std. With `momentum_power` p > 0 the model
+  evolves s = `model.coordinates.to_model(x, p)` in place of x (x_0 above is s_0, C z_k is s_k)
+  and L_rec, L_lift and L_step are taken on s.
+
 With `anchor_equilibrium` (not in the paper) Phi(x) - Phi(0) and psi_uu(u) - psi_uu(3) replace
 Phi and psi_uu, so the equilibrium is an exact fixed point and L_eq is identically zero.
 """
@@ -30,6 +35,8 @@ Phi and psi_uu, so the equilibrium is an exact fixed point and L_eq is identical
 import numpy as np
 import torch
 from torch import nn
+
+from tsr_koopman_ctrl.model import coordinates
 
 
 def mlp(inputs, hidden, layers, outputs, activation):
@@ -82,14 +89,24 @@ class DeepKoopman(nn.Module):
     def normalise(self, x):
         return (x - self.state_mean) / self.state_std
 
+    def model_state(self, x):
+        """s, the state the model evolves, of physical states x."""
+        return coordinates.to_model(x, self.config.momentum_power)
+
+    def physical_state(self, s):
+        return coordinates.to_state(s, self.config.momentum_power)
+
     def psi_x(self, x):
-        phi = self.lift(self.normalise(x))
+        """The lifted state of physical states x: [s; Phi(s)]."""
+        s = self.model_state(x)
+        phi = self.lift(self.normalise(s))
         if self.config.anchor_equilibrium:
             phi = phi - self.lift(self.normalise(torch.zeros_like(self.state_mean)))
-        return torch.cat([x, phi], dim=-1)
+        return torch.cat([s, phi], dim=-1)
 
-    def psi_ux(self, x):
-        raw = self.input_gain(self.normalise(x))[..., 0]
+    def psi_ux(self, s):
+        """The input gain at model states s (C z)."""
+        raw = self.input_gain(self.normalise(s))[..., 0]
         return self.config.min_input_gain + nn.functional.softplus(raw)
 
     def psi_uu(self, u):
@@ -99,8 +116,8 @@ class DeepKoopman(nn.Module):
             value = value - self.input_map(tension)
         return value
 
-    def psi_u(self, x, u):
-        return self.psi_ux(x) * self.psi_uu(u)
+    def psi_u(self, s, u):
+        return self.psi_ux(s) * self.psi_uu(u)
 
     def rollout(self, z0, u):
         """Lifted predictions (B, T + 1, K + n) from z0 (B, K + n) under u (B, T)."""
@@ -112,8 +129,8 @@ class DeepKoopman(nn.Module):
         return torch.stack(lifted, dim=1)
 
     def predict(self, x0, u):
-        """States read off the rollout, (B, T + 1, n)."""
-        return self.rollout(self.psi_x(x0), u)[..., :self.config.state_dim]
+        """Physical states read off the rollout, (B, T + 1, n)."""
+        return self.physical_state(self.rollout(self.psi_x(x0), u)[..., :self.config.state_dim])
 
     def to_numpy(self):
         """Tensor name -> numpy array, in the layout `model_file` stores: a snapshot (on the
@@ -139,23 +156,29 @@ def loss_terms(model, x, u):
     weights = config.gamma ** torch.arange(1, steps + 1, dtype=x.dtype, device=x.device)
     weights = weights / weights.sum()
 
-    state_error = ((z_hat[:, 1:, :n] - x[:, 1:]) / model.state_std) ** 2
+    state_error = ((z_hat[:, 1:, :n] - z_true[:, 1:, :n]) / model.state_std) ** 2
     reconstruction = (state_error.mean(dim=(0, 2)) * weights).sum()
+    if config.weight_physical:
+        scale = x[:, 1:].std(dim=(0, 1)).detach() + 1e-9
+        physical_error = ((model.physical_state(z_hat[:, 1:, :n]) - x[:, 1:]) / scale) ** 2
+        physical = (physical_error.mean(dim=(0, 2)) * weights).sum()
+    else:
+        physical = torch.zeros((), device=x.device)
     phi_true, phi_hat = z_true[:, 1:, n:], z_hat[:, 1:, n:]
     phi_error = ((phi_hat - phi_true) ** 2).mean(dim=(0, 2))
     lifted = ((state_error.mean(dim=(0, 2)) * n + phi_error * config.lift_dim)
               / config.lifted_dim * weights).sum()
     return (reconstruction, lifted, controllability_loss(model.A, model.B, config),
-            equilibrium_drift(model), one_step_error(model, z_true, x, u))
+            equilibrium_drift(model), one_step_error(model, z_true, u), physical)
 
 
-def one_step_error(model, z_true, x, u):
+def one_step_error(model, z_true, u):
     """Relative one-step error of the state read off z_(k+1) = A psi_x(x_k) + B psi_u(x_k, u_k),
     from every measured state of the batch: the step a feedback controller takes, since it lifts
     each new measurement. Each component is scaled by the batch std of its one-step increment
     (no gradient through it): 1 means no better than predicting no change."""
     n = model.config.state_dim
-    x_now, x_next = x[:, :-1], x[:, 1:]
+    x_now, x_next = z_true[:, :-1, :n], z_true[:, 1:, :n]
     predicted = (z_true[:, :-1] @ model.A[:n].T
                  + model.psi_u(x_now, u).unsqueeze(-1) * model.B[:n].T)
     increment_std = (x_next - x_now).std(dim=(0, 1)).detach() + 1e-9
@@ -186,11 +209,11 @@ def controllability_loss(a, b, config):
 
 
 def total_loss(model, x, u):
-    rec, lift, ctrb, eq, step = loss_terms(model, x, u)
+    rec, lift, ctrb, eq, step, physical = loss_terms(model, x, u)
     config = model.config
     total = (config.weight_reconstruction * rec + config.weight_lifted * lift
              + config.weight_controllability * ctrb + config.weight_equilibrium * eq
-             + config.weight_one_step * step)
+             + config.weight_one_step * step + config.weight_physical * physical)
     return total, {'reconstruction': rec.item(), 'lifted': lift.item(),
                    'controllability': ctrb.item(), 'equilibrium': eq.item(),
-                   'one_step': step.item()}
+                   'one_step': step.item(), 'physical': physical.item()}

@@ -27,7 +27,7 @@ import torch
 from tqdm import tqdm
 
 from tsr_koopman_ctrl.learning import distributed, errors, kinds
-from tsr_koopman_ctrl.model import lifted, model_file
+from tsr_koopman_ctrl.model import coordinates, lifted, model_file
 
 CHECKPOINT = 'checkpoint.pt'
 #: Under DDP rank r shuffles its shard with seed + epoch + r * this (rank 0: as one process).
@@ -143,8 +143,10 @@ class Trainer:
         return model
 
     def normalisation(self, train):
-        """(mean, std) of the training states (over every rank under DDP)."""
-        flat = train.x.reshape(-1, train.x.shape[2])
+        """(mean, std) of the training states in the model's coordinates (over every rank
+        under DDP)."""
+        flat = coordinates.to_model(train.x.reshape(-1, train.x.shape[2]),
+                                    self.config.momentum_power)
         mean, std = self.context.normalisation(flat)
         return mean, std + 1e-8
 

@@ -6,9 +6,12 @@ The lifted linear system (paper eq. (9)-(11)) with our fixes::
     z+ = A z + B u_hat,   u_hat = psi_u(x, u) = psi_ux(x) psi_uu(u),   x = C z,  C = [I 0]
 
 psi_uu is strictly increasing, so u = psi_uu^-1(u_hat / psi_ux(x)) inverts psi_u exactly (the
-paper's printed inverse does not). `LiftedModel` mirrors `learning.deep_koopman.DeepKoopman`
-in float64; tests check the two agree. Torch is not needed here: the controller's hot path is
-plain numpy.
+paper's printed inverse does not). A model trained with `momentum_power` p > 0 evolves
+s = coordinates.to_model(x, p) (a scaled momentum in place of theta') in place of x: then
+psi_x(x) = [s; Phi((s - mean) / std)], C z = s, and every method that returns states maps them
+back (`coordinates.to_state`); p = 0 is the paper's form. `LiftedModel` mirrors
+`learning.deep_koopman.DeepKoopman` in float64; tests check the two agree. Torch is not needed
+here: the controller's hot path is plain numpy.
 """
 
 import math
@@ -16,7 +19,7 @@ import math
 import numpy as np
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.model import model_file
+from tsr_koopman_ctrl.model import coordinates, model_file
 
 
 def softplus(v):
@@ -144,6 +147,7 @@ class LiftedModel:
         self.config = config
         self.metadata = metadata or {}
         self.n = config.state_dim
+        self.power = config.momentum_power
         self.mean, self.std = tensors['state_mean'], tensors['state_std']
         self.lift = Mlp(tensors, 'lift', config.activation)
         self.input_gain = Mlp(tensors, 'input_gain', config.activation)
@@ -166,7 +170,8 @@ class LiftedModel:
         """Shift the last biases so Phi(x) = 0 and psi_uu(u) = 0: the torch model's
         `anchor_equilibrium`, folded into the constants once instead of subtracted per call."""
         weight, bias = self.lift.layers[-1]
-        self.lift.layers[-1] = (weight, bias - self.lift((x - self.mean) / self.std))
+        s = coordinates.to_model(np.asarray(x, dtype=float), self.power)
+        self.lift.layers[-1] = (weight, bias - self.lift((s - self.mean) / self.std))
         self.input_map.offset -= float(self.input_map(u))
 
     @classmethod
@@ -224,16 +229,25 @@ class LiftedModel:
         return cast
 
     def psi_x(self, x):
-        x = np.asarray(x, dtype=self.dtype)
-        return np.concatenate([x, self.lift((x - self.mean) / self.std)], axis=-1)
+        return self.lift_model_state(self.model_state(x))
 
     def psi_ux(self, x):
-        x = np.asarray(x, dtype=self.dtype)
-        raw = self.input_gain((x - self.mean) / self.std)[..., 0]
-        return self.config.min_input_gain + softplus(raw)
+        return self.input_gain_at(self.model_state(x))
 
     def psi_u(self, x, u):
         return self.psi_ux(x) * self.input_map(u)
+
+    def model_state(self, x):
+        """s, the state the model evolves, of physical states x (x itself when p = 0)."""
+        return coordinates.to_model(np.asarray(x, dtype=self.dtype), self.power)
+
+    def lift_model_state(self, s):
+        return np.concatenate([s, self.lift((s - self.mean) / self.std)], axis=-1)
+
+    def input_gain_at(self, s):
+        """psi_ux at model states s."""
+        raw = self.input_gain((s - self.mean) / self.std)[..., 0]
+        return self.config.min_input_gain + softplus(raw)
 
     def tension_from_input(self, x, u_hat, input_gain=None, guess=None):
         """Invert psi_u at state x: the tension u with psi_u(x, u) = u_hat (not clamped).
@@ -259,24 +273,31 @@ class LiftedModel:
         z = self.psi_x(x0)
         states = [z[:, :self.n]]
         for k in range(u.shape[1]):
-            z = z @ self.A.T + self.psi_u(z[:, :self.n], u[:, k])[:, None] * self.B.T
+            gain = self.input_gain_at(z[:, :self.n])
+            z = z @ self.A.T + (gain * self.input_map(u[:, k]))[:, None] * self.B.T
             states.append(z[:, :self.n])
-        return np.stack(states, axis=1)
+        return coordinates.to_state(np.stack(states, axis=1), self.power)
 
     def step(self, x, u):
         """The relifted one-step map on a batch, x (N, n), u (N,) -> x+ (N, n):
-        x+ = C (A psi_x(x) + B psi_u(x, u))."""
-        return (self.psi_x(x) @ self.A[:self.n].T
-                + self.psi_u(x, u)[:, None] * self.B[:self.n].T)
+        x+ = C (A psi_x(x) + B psi_u(x, u)) (in the model's state, mapped back)."""
+        following = (self.psi_x(x) @ self.A[:self.n].T
+                     + self.psi_u(x, u)[:, None] * self.B[:self.n].T)
+        return coordinates.to_state(following, self.power)
 
     def step_jacobians(self, x, u):
         """The one-step map on a batch and its derivatives, analytic (forward mode through the
         networks): (x+ (N, n), d x+ / d x (N, n, n), d x+ / d u (N, n))."""
-        x = np.atleast_2d(np.asarray(x, dtype=self.dtype))
+        physical = np.atleast_2d(np.asarray(x, dtype=self.dtype))
         u = np.asarray(u, dtype=self.dtype)
         n = self.n
-        # d ((x - mean) / std) / dx, one direction per state component.
-        directions = np.broadcast_to(np.diag(1.0 / self.std), (len(x), n, n))
+        x = self.model_state(physical)
+        # d ((s - mean) / std) / dx, one direction per state component.
+        if self.power:
+            into = coordinates.to_model_jacobian(physical, self.power).astype(self.dtype)
+            directions = into.transpose(0, 2, 1) / self.std
+        else:
+            directions = np.broadcast_to(np.diag(1.0 / self.std), (len(x), n, n))
         normalised = (x - self.mean) / self.std
         lifted, d_lifted = self.lift.with_tangents(normalised, directions)
         raw, d_raw = self.input_gain.with_tangents(normalised, directions)
@@ -289,23 +310,41 @@ class LiftedModel:
         following = (x @ a_state.T + lifted @ a_lift.T
                      + (gain * mapped)[:, None] * b_x[None, :])
         # d x+ / d x_k = A_state e_k + A_lift dPhi/dx_k + b (psi_uu(u) d psi_ux / dx_k).
-        d_state = (a_state[None] + (d_lifted @ a_lift.T).transpose(0, 2, 1)
+        d_state = ((d_lifted @ a_lift.T).transpose(0, 2, 1)
                    + b_x[None, :, None] * (mapped[:, None] * d_gain)[:, None, :])
         d_tension = (gain * self.input_map.derivative(u))[:, None] * b_x[None, :]
-        return following, d_state, d_tension
+        if not self.power:
+            return following, a_state[None] + d_state, d_tension
+        # Through the coordinates: d s / d x into the model, d x / d s back out.
+        back = coordinates.to_state_jacobian(following, self.power).astype(self.dtype)
+        d_state = back @ (a_state[None] @ into + d_state)
+        return (coordinates.to_state(following, self.power), d_state,
+                (back @ d_tension[:, :, None])[:, :, 0])
 
     def lift_jacobian(self, x=None):
         """dpsi_x/dx at x (default: the equilibrium), (lifted_dim, n): exact, the lifting
         network differentiated in forward mode (`Mlp.with_tangents`)."""
         x = dynamics.equilibrium_state(self.n) if x is None else np.asarray(x, dtype=float)
-        directions = np.diag(1.0 / self.std)[None]     # d((x - mean) / std) / dx, per component
-        _, d_lifted = self.lift.with_tangents(((x - self.mean) / self.std)[None], directions)
-        return np.vstack([np.eye(self.n), d_lifted[0].T])
+        into = coordinates.to_model_jacobian(x, self.power)[0]     # d s / d x
+        s = coordinates.to_model(x, self.power)
+        directions = (into.T / self.std)[None]     # d((s - mean) / std) / dx, per component
+        _, d_lifted = self.lift.with_tangents(((s - self.mean) / self.std)[None], directions)
+        return np.vstack([into, d_lifted[0].T])
 
     def local_linear_model(self, x=None):
         """(J, B_x): the state part of the lifted model's one-step map linearised at x (default:
-        the equilibrium) in the lifted input, x+ ~ J x + B_x u_hat; J = A_x dpsi_x/dx."""
-        return self.A[:self.n] @ self.lift_jacobian(x), self.B[:self.n]
+        the equilibrium) in the lifted input, x+ ~ J x + B_x u_hat; J = A_x dpsi_x/dx (and
+        d x / d s of the step's end ahead of both when the model evolves s)."""
+        x = dynamics.equilibrium_state(self.n) if x is None else np.asarray(x, dtype=float)
+        jacobian, b_x = self.A[:self.n] @ self.lift_jacobian(x), self.B[:self.n]
+        if not self.power:
+            return jacobian, b_x
+        s = self.model_state(x)
+        following = (self.lift_model_state(s) @ self.A[:self.n].T
+                     + self.input_gain_at(s) * self.input_map(self.config.anchor_tension)
+                     * self.B[:self.n, 0])
+        back = coordinates.to_state_jacobian(following, self.power)[0]
+        return back @ jacobian, back @ b_x
 
     def controllability_rank(self):
         return controllability_rank(self.A, self.B)

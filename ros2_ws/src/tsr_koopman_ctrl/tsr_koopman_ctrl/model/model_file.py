@@ -22,6 +22,8 @@ import pathlib
 
 import numpy as np
 
+from tsr_koopman_ctrl.model import coordinates
+
 FORMAT = 'tsr-koopman-model'
 FORMAT_VERSION = 1
 WEIGHTS_FILE = 'weights.safetensors'
@@ -93,6 +95,12 @@ class KoopmanConfig:
     #: Not in the paper: weight of L_step, the relative one-step error from every measured state
     #: (what a controller that lifts each measurement relies on).
     weight_one_step: float = 0.0
+    #: Not in the paper: the exponent p of the scaled momentum l^p (1 + theta') the model
+    #: evolves in place of theta' (`model.coordinates`; 0: the physical state).
+    momentum_power: float = 0.0
+    #: Not in the paper: weight of L_phys, L_rec taken on the physical state read back from
+    #: the model's own (the same as L_rec when momentum_power is 0).
+    weight_physical: float = 0.0
     gamma: float = 1.0 - 1e-3
     #: L_ctrb is near zero once every normalised singular value of the controllability matrix
     #: is well above this (a differentiable stand-in for "full rank"; rank reported separately).
@@ -121,6 +129,10 @@ class KoopmanConfig:
         if not self.tension_range[0] <= self.anchor_tension <= self.tension_range[1]:
             raise ValueError(f'anchor_tension must lie in tension_range {self.tension_range}, '
                              f'got {self.anchor_tension}')
+        low, high = coordinates.POWER_RANGE
+        if not low <= self.momentum_power <= high:
+            raise ValueError(f'momentum_power must be in [{low}, {high}], '
+                             f'got {self.momentum_power}')
         if not self.min_input_gain > 0.0:
             raise ValueError('min_input_gain must be > 0 (psi_ux must stay away from zero)')
 
