@@ -33,3 +33,15 @@ def test_the_test_set_is_the_paper_sampling_from_its_own_seed():
     np.testing.assert_array_equal(
         data.test_set(10).x,
         datasets.sample(datasets.SamplingConfig(trajectories=10, seed=datasets.TEST_SEED))[0].x)
+
+
+def test_the_short_tether_box_starts_short_and_holds_its_tensions():
+    short = data.training_data(trajectories=0, short_tether_trajectories=300,
+                               log=lambda line: None)
+    starts = short.x[:, 0]
+    assert np.all(starts >= np.array(datasets.SHORT_TETHER_BOX_LOW) - 1e-12)
+    assert np.all(starts <= np.array(datasets.SHORT_TETHER_BOX_HIGH) + 1e-12)
+    assert np.all(1.0 + starts[:, 2] < 0.15) and len(short) > 50
+    # Held for 10 steps: each block of ten tensions is one value.
+    blocks = short.u[:, :30].reshape(len(short), 3, 10)
+    np.testing.assert_array_equal(blocks, np.repeat(blocks[:, :, :1], 10, axis=2))

@@ -77,6 +77,9 @@ def parser():
     p.add_argument('--held-tension-trajectories', type=int, default=0,
                    help='extra trajectories from the Table-1 box with tensions held for 10 '
                    'steps, two in three at 0 or 5 (not in the paper)')
+    p.add_argument('--short-tether-trajectories', type=int, default=0,
+                   help='extra trajectories with l < 0.15 and |l\'| <= 0.3, tensions held as '
+                   'above (not in the paper)')
     p.add_argument('--weight-equilibrium', type=float,
                    help='weight of the equilibrium drift loss (not in the paper; default 0)')
     p.add_argument('--weight-one-step', type=float,

@@ -21,7 +21,9 @@ EXTRA_BOXES = (
     ('retrieval_trajectories', 2, datasets.RETRIEVAL_BOX_LOW, datasets.RETRIEVAL_BOX_HIGH, {},
      'retrieval trajectories'),
     ('held_tension_trajectories', 3, dynamics.TABLE1_STATE_LOW, dynamics.TABLE1_STATE_HIGH,
-     datasets.HELD_TENSIONS, 'held-tension trajectories'))
+     datasets.HELD_TENSIONS, 'held-tension trajectories'),
+    ('short_tether_trajectories', 4, datasets.SHORT_TETHER_BOX_LOW,
+     datasets.SHORT_TETHER_BOX_HIGH, datasets.HELD_TENSIONS, 'short-tether trajectories'))
 
 
 def training_data(files=(), trajectories=40_000, data_seed=0, log=print, **extra):

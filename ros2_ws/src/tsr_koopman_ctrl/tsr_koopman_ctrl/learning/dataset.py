@@ -37,6 +37,13 @@ EQUILIBRIUM_BOX_HIGH = (0.3, 0.3, 0.2, 0.3)
 RETRIEVAL_BOX_LOW = (-1.0, -2.0, -0.99, -1.5)
 RETRIEVAL_BOX_HIGH = (1.0, 2.0, 0.0, 0.0)
 
+#: Not in the paper: a tether shorter than 0.15 paying out or reeling in slowly. Hovering there
+#: until the swing is right is how the exact-model NMPC holds a 0.4-rad swing bound from the
+#: fast-payout starts (for tenths of a tau at l ~ 0.02-0.05); in Table 1 such states are a
+#: few steps at the start of a window.
+SHORT_TETHER_BOX_LOW = (-1.0, -1.5, -0.99, -0.3)
+SHORT_TETHER_BOX_HIGH = (1.0, 1.5, -0.85, 0.3)
+
 #: Not in the paper: tensions held for 10 steps (0.1 tau), two in three at 0 or 5: how the
 #: physics and learned NMPCs fly (coast at 0, brake at 5). From the Table-1 box.
 HELD_TENSIONS = {'tension_hold': 10, 'tension_extremes': 2.0 / 3.0}
