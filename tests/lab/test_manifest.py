@@ -171,7 +171,7 @@ def test_the_pages_generated_by_their_studies(monkeypatch):
     generated = {entry['name'] for entry in ENTRIES if page_option(entry, monkeypatch)}
     assert generated == {'main_job', 'comparison', 'comparison_swing0.4', 'robustness',
                          'assurance', 'fallback_region', 'timed_rehearsal', 'prediction',
-                         'prediction_main_job', 'nmpc_nominal', 'nmpc_swing0.4',
-                         'nmpc_robustness', 'data_loop_actuator_weak',
+                         'prediction_main_job', 'prediction_momentum', 'nmpc_nominal',
+                         'nmpc_swing0.4', 'nmpc_robustness', 'data_loop_actuator_weak',
                          'data_loop_actuator_strong', 'data_loop_heavy_robot',
                          'data_loop_eccentric_orbit'}
