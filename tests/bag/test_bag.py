@@ -80,6 +80,19 @@ def test_round_trip_with_own_reader_and_rosbags(tmp_path):
     assert texts == [f'msg {i}' for i in range(500)]
 
 
+def test_the_reader_gives_each_message_its_log_and_publish_times(tmp_path):
+    """On sim time the log time is the recorder's sim clock and the publish time the sender's
+    wall clock: both come back, each as written."""
+    with bag.BagWriter(str(tmp_path / 'b')) as writer:
+        writer.add_topic(string_topic())
+        writer.write('/chatter', cdr_string('one'), log_time_ns=8_470_000_000,
+                     publish_time_ns=1_796_400_000_000_000_000)
+        writer.write('/chatter', cdr_string('two'), log_time_ns=16_940_000_000)
+    got = [(m.log_time_ns, m.publish_time_ns) for m in bag.BagReader(str(tmp_path / 'b'))
+           .messages()]
+    assert got == [(8_470_000_000, 1_796_400_000_000_000_000), (16_940_000_000, 16_940_000_000)]
+
+
 def test_split_by_size_keeps_every_message_in_order(tmp_path):
     writer = write_strings(tmp_path / 'b', 3000, max_file_bytes=8_000, chunk_size=2_000)
     assert len(writer.files) > 2

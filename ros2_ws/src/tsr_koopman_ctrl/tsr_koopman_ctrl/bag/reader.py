@@ -44,8 +44,9 @@ _MESSAGE_HEAD = struct.Struct('<HIQQ')       # channel id, sequence, log time, p
 class BagMessage:
     topic: str
     type: str
-    log_time_ns: int
+    log_time_ns: int        # the recorder's clock: sim time in a bag recorded on sim time
     data: bytes
+    publish_time_ns: int = 0    # the publisher's wall clock when the rmw gives it
 
 
 @dataclass
@@ -141,7 +142,8 @@ class BagReader:
                 if isinstance(record, Message):
                     topic, type_name = channels[record.channel_id]
                     if topics is None or topic in topics:
-                        yield BagMessage(topic, type_name, record.log_time, record.data)
+                        yield BagMessage(topic, type_name, record.log_time, record.data,
+                                         record.publish_time)
                 elif isinstance(record, Schema):
                     schemas[record.id] = record
                     self.schemas[record.name] = record
