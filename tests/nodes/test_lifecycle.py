@@ -55,7 +55,8 @@ class Watch:
 
 def lifecycle_state(ros, node='tsr_controller'):
     from lifecycle_msgs.srv import GetState
-    return ros.call(GetState, f'{node}/get_state', GetState.Request()).current_state.id
+    return ros.call(GetState, f'{node}/get_state', GetState.Request(),
+                    resend=2.0).current_state.id
 
 
 def transition(ros, label, node='tsr_controller'):

@@ -126,9 +126,9 @@ def test_every_number_has_a_range(ros, start_node, tmp_path):
     numeric = (ParameterType.PARAMETER_INTEGER, ParameterType.PARAMETER_DOUBLE)
     for node in EXECUTABLES:
         names = ros.call(ListParameters, f'{node}/list_parameters',
-                         ListParameters.Request()).result.names
+                         ListParameters.Request(), resend=2.0).result.names
         descriptors = ros.call(DescribeParameters, f'{node}/describe_parameters',
-                               DescribeParameters.Request(names=names)).descriptors
+                               DescribeParameters.Request(names=names), resend=2.0).descriptors
         unbounded = [d.name for d in descriptors if d.type in numeric
                      and not (d.integer_range or d.floating_point_range)]
         assert unbounded == [], node

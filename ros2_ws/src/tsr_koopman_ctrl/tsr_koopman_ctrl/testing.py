@@ -72,15 +72,26 @@ class RosClient:
         while time.monotonic() < deadline and not (until and until()):
             self.executor.spin_once(timeout_sec=0.05)
 
-    def call(self, service_type, name, request, timeout=10.0):
-        """Call a service and wait for its response."""
+    def call(self, service_type, name, request, timeout=10.0, resend=None):
+        """Call a service and wait for its response. `resend`: for a read-only service, send
+        the request again every `resend` s without a response (a service just discovered may
+        not yet hear its first requests; a transition must not be sent twice)."""
         client = self.node.create_client(service_type, name)
         try:
             if not client.wait_for_service(timeout_sec=timeout):
                 raise TimeoutError(f'no service {name} after {timeout} s')
-            future = client.call_async(request)
-            self.spin_until(future.done, timeout, what=f'the response of {name}')
-            return future.result()
+            deadline = time.monotonic() + timeout
+            futures = [client.call_async(request)]
+            while not any(f.done() for f in futures):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f'timed out after {timeout} s waiting for the response '
+                                       f'of {name}')
+                self.spin_for(min(left, resend or left),
+                              until=lambda: any(f.done() for f in futures))
+                if resend and not any(f.done() for f in futures):
+                    futures.append(client.call_async(request))
+            return next(f for f in futures if f.done()).result()
         finally:
             self.node.destroy_client(client)
 
@@ -98,7 +109,7 @@ class RosClient:
         from rcl_interfaces.srv import GetParameters
         from rclpy.parameter import parameter_value_to_python
         response = self.call(GetParameters, f'{node_name}/get_parameters',
-                             GetParameters.Request(names=list(names)), timeout)
+                             GetParameters.Request(names=list(names)), timeout, resend=2.0)
         return {name: parameter_value_to_python(value)
                 for name, value in zip(names, response.values)}
 

@@ -22,7 +22,6 @@ sum (docs/paper_notes.md explains why the paper's terms are changed):
   at the known equilibrium x = 0, u = 3, which LQR and MPC regulate to.
 - L_step (not in the paper, weight 0 by default): `one_step_error`, the relative error of the
   one-step prediction from every measured state of the batch.
-
 - L_phys (not in the paper, weight 0 by default): L_rec on the physical state read back from the
   model's own, each component scaled by its batch std. With `momentum_power` p > 0 the model
   evolves s = `model.coordinates.to_model(x, p)` in place of x (x_0 above is s_0, C z_k is s_k)

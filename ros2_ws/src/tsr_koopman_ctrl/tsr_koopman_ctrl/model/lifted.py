@@ -291,7 +291,7 @@ class LiftedModel:
         physical = np.atleast_2d(np.asarray(x, dtype=self.dtype))
         u = np.asarray(u, dtype=self.dtype)
         n = self.n
-        x = self.model_state(physical)
+        x = self.model_state(physical)      # from here on x is the model's state s
         # d ((s - mean) / std) / dx, one direction per state component.
         if self.power:
             into = coordinates.to_model_jacobian(physical, self.power).astype(self.dtype)
