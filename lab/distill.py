@@ -161,9 +161,12 @@ def markdown(results):
 
 
 def relifted_step(model, x, u):
-    """The torch model's relifted one-step map, x+ = C (A psi_x(x) + B psi_u(x, u))."""
+    """The torch model's relifted one-step map, x+ = C (A psi_x(x) + B psi_u(x, u)), in the
+    model's state s and mapped back to the physical state."""
     n = model.config.state_dim
-    return model.psi_x(x) @ model.A[:n].T + model.psi_u(x, u).unsqueeze(-1) * model.B[:n].T
+    z = model.psi_x(x)
+    following = z @ model.A[:n].T + model.psi_u(z[..., :n], u).unsqueeze(-1) * model.B[:n].T
+    return model.physical_state(following)
 
 
 #: Boxes the fresh one-step samples come from, with their shares: the teacher's data in its
