@@ -39,6 +39,16 @@ def tiny_config():
                                     learning_rate=3e-3)
 
 
+def step_differences(model, x, u, eps=1e-6):
+    """(d x+ / d x (N, n, n), d x+ / d u (N, n)) of `model.step` by central differences: the
+    reference its analytic `step_jacobians` are checked against."""
+    import numpy as np
+    by_state = np.stack([(model.step(x + eps * e, u) - model.step(x - eps * e, u)) / (2 * eps)
+                         for e in np.eye(x.shape[1])], axis=2)
+    by_tension = (model.step(x, u + eps) - model.step(x, u - eps)) / (2 * eps)
+    return by_state, by_tension
+
+
 @pytest.fixture(scope='session')
 def small_data():
     from tsr_koopman_ctrl.learning import dataset as datasets

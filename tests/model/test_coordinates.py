@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import tiny_config
+from conftest import step_differences, tiny_config
 
 from tsr_koopman_ctrl.control import make_controller
 from tsr_koopman_ctrl.learning.trainer import save_model, Trainer
@@ -109,13 +109,11 @@ def test_the_momentum_models_step_jacobians_match_central_differences(momentum_m
     u = rng.uniform(0.0, 5.0, 6)
     following, d_state, d_tension = model.step_jacobians(x, u)
     np.testing.assert_allclose(following, model.step(x, u), rtol=1e-12, atol=1e-13)
-    eps = 1e-6
-    by_state = np.stack([(model.step(x + eps * e, u) - model.step(x - eps * e, u)) / (2 * eps)
-                         for e in np.eye(4)], axis=2)
-    by_tension = (model.step(x, u + eps) - model.step(x, u - eps)) / (2 * eps)
+    by_state, by_tension = step_differences(model, x, u)
     np.testing.assert_allclose(d_state, by_state, atol=1e-7)
     np.testing.assert_allclose(d_tension, by_tension, atol=1e-7)
     # The lifting's Jacobian, and the local linear model (its state rows mapped back).
+    eps = 1e-6
     at = np.array([0.3, -0.2, -0.5, 0.4])
     jacobian = model.lift_jacobian(at)
     np.testing.assert_allclose(jacobian, np.stack(

@@ -5,6 +5,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+from conftest import step_differences
+
 from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.learning import errors
 from tsr_koopman_ctrl.model import lifted, model_file
@@ -171,10 +173,7 @@ def test_the_analytic_step_jacobians_match_central_differences(tiny_model, activ
     x, u = rng.normal(scale=[0.3, 0.3, 0.3, 0.5], size=(6, 4)), rng.uniform(0.0, 5.0, 6)
     following, d_state, d_tension = model.step_jacobians(x, u)
     np.testing.assert_allclose(following, model.step(x, u), rtol=1e-12, atol=1e-14)
-    eps = 1e-6
-    by_state = np.stack([(model.step(x + eps * e, u) - model.step(x - eps * e, u)) / (2 * eps)
-                         for e in np.eye(4)], axis=2)
-    by_tension = (model.step(x, u + eps) - model.step(x, u - eps)) / (2 * eps)
+    by_state, by_tension = step_differences(model, x, u)
     np.testing.assert_allclose(d_state, by_state, atol=1e-8)
     np.testing.assert_allclose(d_tension, by_tension, atol=1e-8)
     assert np.abs(d_state - np.eye(4)).max() > 1e-3     # not the identity the map is close to
