@@ -205,12 +205,12 @@ def one_step_loss(model, x, u, following, scale, floor):
     return ((error / size) ** 2).mean()
 
 
-def rollout_loss(model, x, u, dataset_bound=10.0):
+def rollout_loss(model, x, u, gamma, dataset_bound=10.0):
     """The relifted map iterated over windows from x_0: the state error per component over the
-    model's normalisation, discounted by gamma, as L_rec."""
+    model's normalisation, discounted by `gamma`, as L_rec."""
     import torch
     steps = u.shape[1]
-    weights = model.config.gamma ** torch.arange(1, steps + 1, dtype=x.dtype)
+    weights = gamma ** torch.arange(1, steps + 1, dtype=x.dtype)
     state, total = x[:, 0], 0.0
     for k in range(steps):
         # (clamped where the data's states stay: a runaway would make the gradient inf)
@@ -220,27 +220,25 @@ def rollout_loss(model, x, u, dataset_bound=10.0):
 
 
 def student(args):
-    """(torch model, config): --init's, or a fresh one of --fresh's size with the teacher's
-    normalisation and settings."""
-    import dataclasses
-
+    """(torch model, KoopmanConfig): --init's, or a fresh one of --fresh's size with the
+    teacher's normalisation and settings."""
     from tsr_koopman_ctrl.learning import deep_koopman
     from tsr_koopman_ctrl.model import model_file, shipped
     if args.init:
-        tensors, config, _ = model_file.load(shipped.resolve(args.init))
-        return deep_koopman.DeepKoopman.from_numpy(tensors, config), config
-    tensors, config, _ = model_file.load(shipped.resolve(args.teacher))
+        tensors, config, metadata = model_file.load(shipped.resolve(args.init))
+        return (deep_koopman.DeepKoopman.from_numpy(tensors, config),
+                model_file.KoopmanConfig.of(config, metadata))
+    tensors, config, metadata = model_file.load(shipped.resolve(args.teacher))
     hidden, layers, input_hidden, input_layers = args.fresh
-    config = dataclasses.replace(config, hidden=hidden, layers=layers,
-                                 input_hidden=input_hidden, input_layers=input_layers)
+    config = model_file.KoopmanConfig.of(config, metadata).replace(
+        hidden=hidden, layers=layers, input_hidden=input_hidden, input_layers=input_layers)
     if args.lift_dim:
-        config = dataclasses.replace(config, lift_dim=args.lift_dim)
-    return deep_koopman.DeepKoopman(config, tensors['state_mean'], tensors['state_std']), config
+        config = config.replace(lift_dim=args.lift_dim)
+    return (deep_koopman.DeepKoopman(config.model, tensors['state_mean'], tensors['state_std']),
+            config)
 
 
 def train(args, log=print):
-    import dataclasses
-
     import torch
 
     from tsr_koopman_ctrl.learning.data import test_set, training_data
@@ -251,14 +249,14 @@ def train(args, log=print):
     torch.manual_seed(args.seed)
     model_file.check_free(args.out, args.overwrite)
     model, config = student(args)
-    config = dataclasses.replace(config, epochs=args.epochs, learning_rate=args.learning_rate,
-                                 seed=args.seed)
+    config = config.replace(epochs=args.epochs, learning_rate=args.learning_rate,
+                            seed=args.seed)
     teacher = (LiftedModel.load(args.teacher).astype(np.float32) if args.targets == 'teacher'
                else None)     # (float32: as koopman_nmpc evaluates it)
     data = training_data(args.data, args.trajectories, args.data_seed, log=log,
                          equilibrium_trajectories=args.equilibrium_trajectories,
                          retrieval_trajectories=args.retrieval_trajectories)
-    fit, val = data.split(1.0 - config.validation_fraction, seed=args.seed)
+    fit, val = data.split(1.0 - config.training.validation_fraction, seed=args.seed)
     as_tensors = lambda *a: [torch.as_tensor(v, dtype=torch.float32) for v in a]  # noqa: E731
     x, u = as_tensors(fit.x, fit.u)
     vx, vu = as_tensors(val.x[:2000], val.u[:2000])
@@ -269,11 +267,12 @@ def train(args, log=print):
     scale = (val_step[2] - val_step[0]).abs().median(dim=0).values
     optimiser = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
-        optimiser, T_max=args.epochs * args.batches, eta_min=config.final_learning_rate)
+        optimiser, T_max=args.epochs * args.batches, eta_min=config.training.final_learning_rate)
 
     def losses(step_batch, windows):
         step = one_step_loss(model, *step_batch, scale, args.floor)
-        rollout = rollout_loss(model, *windows) if args.weight_rollout else torch.zeros(())
+        rollout = (rollout_loss(model, *windows, config.training.gamma) if args.weight_rollout
+                   else torch.zeros(()))
         return step + args.weight_rollout * rollout, step, rollout
 
     def validation():

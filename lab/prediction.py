@@ -77,7 +77,7 @@ def sweep(base_config, test, sizes, lift_dims, epochs, include_sindy=True, log=p
     rows = []
 
     def deep(trajectories, k):
-        config = dataclasses.replace(base_config, lift_dim=k, epochs=epochs)
+        config = base_config.replace(lift_dim=k, epochs=epochs)
         data, _ = datasets.sample(datasets.SamplingConfig(trajectories=trajectories))
         trainer = training.Trainer(config, progress=False)
         start = time.perf_counter()
@@ -86,14 +86,14 @@ def sweep(base_config, test, sizes, lift_dims, epochs, include_sindy=True, log=p
         return data, {**score, 'fit_seconds': round(time.perf_counter() - start, 1)}
 
     for trajectories in sizes:
-        data, score = deep(trajectories, base_config.lift_dim)
+        data, score = deep(trajectories, base_config.model.lift_dim)
         rows.append({'sweep': 'trajectories', 'trajectories': trajectories,
-                     'lift_dim': base_config.lift_dim, 'method': 'deep_koopman', **score})
-        methods = [baselines.Edmd(base_config.lift_dim, stabilise=True)]
+                     'lift_dim': base_config.model.lift_dim, 'method': 'deep_koopman', **score})
+        methods = [baselines.Edmd(base_config.model.lift_dim, stabilise=True)]
         methods += [baselines.Sindy()] if include_sindy else []
         for method in methods:
             rows.append({'sweep': 'trajectories', 'trajectories': trajectories,
-                         'lift_dim': base_config.lift_dim, 'method': method.name,
+                         'lift_dim': base_config.model.lift_dim, 'method': method.name,
                          **fit_and_score(method, data, test)})
         log(f'sweep: {trajectories} trajectories done')
     for k in lift_dims:
@@ -243,7 +243,8 @@ def main(argv=None):
             copy_figure(args.page, out / 'error_vs_step.png',
                         figure_name(marker_name(args.out)))
     if args.sweep or args.sweep_only:
-        config = lifted.LiftedModel.load(args.model).config
+        model = lifted.LiftedModel.load(args.model)
+        config = model_file.KoopmanConfig.of(model.config, model.metadata)
         rows = sweep(config, test, args.sweep_trajectories, args.sweep_lift_dims,
                      args.sweep_epochs, not args.no_sindy, log)
         (out / 'sweep.json').write_text(json.dumps(rows, indent=1) + '\n')

@@ -34,9 +34,9 @@ def pytest_collection_modifyitems(items):
 
 def tiny_config():
     from tsr_koopman_ctrl.model import model_file
-    return model_file.KoopmanConfig(lift_dim=4, hidden=16, layers=2, input_hidden=8,
-                                    input_layers=1, input_terms=3, epochs=4, batch_size=32,
-                                    learning_rate=3e-3)
+    return model_file.KoopmanConfig.from_dict(dict(
+        lift_dim=4, hidden=16, layers=2, input_hidden=8, input_layers=1, input_terms=3,
+        epochs=4, batch_size=32, learning_rate=3e-3))
 
 
 def step_differences(model, x, u, eps=1e-6):

@@ -21,16 +21,18 @@ def main():
     parser.add_argument('--model', default=DEFAULT_MODEL)
     parser.add_argument('--batches', type=int, default=30)
     args = parser.parse_args()
-    _, config, meta = model_file.load(resolve(args.model))
-    data, _ = datasets.sample(datasets.SamplingConfig(trajectories=config.batch_size * 4))
+    _, model_config, meta = model_file.load(resolve(args.model))
+    config = model_file.KoopmanConfig.of(model_config, meta)
+    training = config.training
+    data, _ = datasets.sample(datasets.SamplingConfig(trajectories=training.batch_size * 4))
     x = torch.as_tensor(data.x, dtype=torch.float32)
     u = torch.as_tensor(data.u, dtype=torch.float32)
-    net = deep_koopman.DeepKoopman(config, x.reshape(-1, 4).mean(0), x.reshape(-1, 4).std(0))
-    optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
+    net = deep_koopman.DeepKoopman(model_config, x.reshape(-1, 4).mean(0), x.reshape(-1, 4).std(0))
+    optimiser = torch.optim.Adam(net.parameters(), lr=training.learning_rate)
 
     def step(i):
-        index = torch.arange(i * config.batch_size, (i + 1) * config.batch_size) % len(x)
-        loss, _ = deep_koopman.total_loss(net, x[index], u[index])
+        index = torch.arange(i * training.batch_size, (i + 1) * training.batch_size) % len(x)
+        loss, _ = deep_koopman.total_loss(net, x[index], u[index], training)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
@@ -41,16 +43,17 @@ def main():
     for i in range(args.batches):
         step(i)
     seconds = time.perf_counter() - start
-    rate = args.batches * config.batch_size / seconds
-    trained = meta['data']['train_trajectories'] * (1 - config.validation_fraction)
+    rate = args.batches * training.batch_size / seconds
+    trained = meta['data']['train_trajectories'] * (1 - training.validation_fraction)
     epoch_s = trained / rate
     best_epoch = meta['metrics']['validation_best']['epoch']
-    print(f'threads {torch.get_num_threads()}, batch {config.batch_size}, K {config.lift_dim}')
+    print(f'threads {torch.get_num_threads()}, batch {training.batch_size}, '
+          f'K {model_config.lift_dim}')
     print(f'training throughput: {rate:,.0f} trajectories/s ({rate * 30:,.0f} state-steps/s)')
     print(f'epoch of {trained:,.0f} trajectories: {epoch_s:.1f} s')
     print(f"time to the shipped model's validation error (best at epoch {best_epoch}): "
           f'~{best_epoch * epoch_s / 60:.1f} min (recorded while training: '
-          f"{meta['training_seconds'] / 60:.1f} min for {config.epochs} epochs)")
+          f"{meta['training_seconds'] / 60:.1f} min for {training.epochs} epochs)")
     if 'training_note' in meta:   # e.g. trained partly elsewhere and resumed here
         print(f"note on the recorded time: {meta['training_note']}")
 

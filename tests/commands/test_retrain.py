@@ -1,6 +1,5 @@
 """The retrain command on tiny synthetic bags: provenance, held-out errors, bad bags, DDP."""
 
-import dataclasses
 import hashlib
 import json
 import os
@@ -47,7 +46,7 @@ def init_model(one_thread, tmp_path_factory):
     """A tiny model to fine-tune (2 epochs on 200 sampled trajectories)."""
     out = tmp_path_factory.mktemp('init')
     data, _ = datasets.sample(datasets.SamplingConfig(trajectories=200, seed=5))
-    config = model_file.KoopmanConfig(**{**TINY, 'epochs': 2})
+    config = model_file.KoopmanConfig.from_dict({**TINY, 'epochs': 2})
     trainer = Trainer(config, progress=False)
     save_model(out, trainer.fit(data), config, trainer, data, data, 1.0, 'test',
                envelope=datasets.envelope(data))
@@ -125,10 +124,10 @@ def test_fine_tuning_records_bags_init_and_errors_before_and_after(init_model, b
     git = info['git_commit']
     assert git == 'unknown' or (len(git) == 40 and int(git, 16) >= 0)
     # Fine-tuning kept the init's architecture and normalisation.
-    assert meta['config']['lift_dim'] == 4 and meta['config']['epochs'] == 1
+    assert meta['config']['lift_dim'] == 4 and meta['training']['epochs'] == 1
     init_meta = json.loads((init_dir / 'model.json').read_text())
-    assert meta['config']['learning_rate'] == pytest.approx(
-        init_meta['config']['learning_rate'] * retraining.FINE_TUNE_LEARNING_RATE_FACTOR)
+    assert meta['training']['learning_rate'] == pytest.approx(
+        init_meta['training']['learning_rate'] * retraining.FINE_TUNE_LEARNING_RATE_FACTOR)
     new, old = LiftedModel.load(out), LiftedModel.load(init_dir)
     np.testing.assert_array_equal(new.mean, old.mean)
     np.testing.assert_array_equal(new.std, old.std)
@@ -253,7 +252,7 @@ def test_from_scratch_with_a_config_and_a_sampled_mix(bags, init_model, tmp_path
                        '--sampled-ratio', '2', '--test-trajectories', '0')
     assert code == 0, err
     meta = json.loads((tmp_path / 'm' / 'model.json').read_text())
-    assert {k: meta['config'][k] for k in TINY} == TINY
+    assert {k: {**meta['config'], **meta['training']}[k] for k in TINY} == TINY
     info = meta['retrain']
     assert info['init'] is None and info['errors_before'] == {'held_out': None}
     assert info['sampled_ratio'] == 2.0 and 0 < info['sampled_trajectories'] <= 12
@@ -273,7 +272,7 @@ def test_from_scratch_with_a_config_and_a_sampled_mix(bags, init_model, tmp_path
 def test_an_unknown_config_field_is_named_with_the_known_ones(bags, init_model, tmp_path,
                                                               capsys):
     a = bags[0]
-    known = ', '.join(sorted(f.name for f in dataclasses.fields(model_file.KoopmanConfig)))
+    known = ', '.join(sorted(model_file.KoopmanConfig.names()))
     for init in (['--init', init_model], []):          # fine-tuning and from scratch
         code, _, err = run(capsys, '--bags', a, *init, '--out', tmp_path / 'm',
                            '--config-json', '{"nosuchfield": 1, "epochs": 1}')
@@ -325,10 +324,11 @@ def test_anchor_from_data_is_the_mean_command_inside_the_zone():
     bags = [{'steps': 120, 'sum': 120 * 3.30}, {'steps': 80, 'sum': 80 * 3.35}]
     config, record = retraining.anchored(model_file.KoopmanConfig(), 'data', bags)
     assert record['samples'] == 200
-    assert config.anchor_tension == pytest.approx((120 * 3.30 + 80 * 3.35) / 200, abs=1e-12)
+    assert config.model.anchor_tension == pytest.approx((120 * 3.30 + 80 * 3.35) / 200, abs=1e-12)
     few = [{'steps': 99, 'sum': 99 * 3.3}]               # fewer than 100 in-zone steps: kept
-    assert retraining.anchored(model_file.KoopmanConfig(), 'data', few)[0].anchor_tension == 3.0
-    assert retraining.anchored(model_file.KoopmanConfig(), 3.2, few)[0].anchor_tension == 3.2
+    default = model_file.KoopmanConfig()
+    assert retraining.anchored(default, 'data', few)[0].model.anchor_tension == 3.0
+    assert retraining.anchored(default, 3.2, few)[0].model.anchor_tension == 3.2
     with pytest.raises(retraining.UsageError, match='anchor'):
         retraining.anchored(model_file.KoopmanConfig(), 7.0, few)
     with pytest.raises(retraining.UsageError, match='--anchor'):
@@ -349,3 +349,17 @@ def test_fine_tuning_a_block_model_keeps_its_structure(bags, tmp_path, capsys):
     # 4) eigenvalues may lie on or outside the unit circle.
     eigenvalues = np.abs(np.linalg.eigvals(LiftedModel.load(str(out)).A))
     assert np.count_nonzero(eigenvalues >= 1.0) <= 4
+
+
+def test_a_fine_tune_may_change_the_training_but_not_the_model(init_model, tmp_path):
+    """Every TrainingConfig field may change in a fine-tune (weight_physical too); a
+    ModelConfig field that differs from the init's is refused."""
+    options = retraining.RetrainOptions(init=str(init_model), config={'weight_physical': 0.5,
+                                                                      'gamma': 0.99})
+    config, init, _, init_model_config, _, _ = retraining.configure(options, tmp_path / 'm')
+    assert config.training.weight_physical == 0.5 and config.training.gamma == 0.99
+    assert config.model == init_model_config and init['fine_tuned']
+    with pytest.raises(retraining.UsageError, match='another momentum_power'):
+        retraining.configure(retraining.RetrainOptions(init=str(init_model),
+                                                       config={'momentum_power': 1.0}),
+                             tmp_path / 'm')

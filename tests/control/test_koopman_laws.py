@@ -32,8 +32,8 @@ def exact_linear_lifted_model(lift_dim=2):
     Phi = 0, psi_ux = 1, psi_uu(u) = u - 3, A = blockdiag(expm(A_c h), 0.5 I), B = [B_d; 0]."""
     import scipy.linalg
     from tsr_koopman_ctrl.model import model_file
-    config = model_file.KoopmanConfig(lift_dim=lift_dim, hidden=3, layers=1, input_hidden=3,
-                                      input_layers=1, input_terms=1)
+    config = model_file.ModelConfig(lift_dim=lift_dim, hidden=3, layers=1, input_hidden=3,
+                                    input_layers=1, input_terms=1)
     tensors = {name: np.zeros(shape) for name, shape in model_file.expected_shapes(config).items()}
     tensors['state_std'] = np.ones(4)
     tensors['input_gain.2.bias'] = np.array([np.log(np.expm1(0.95))])   # psi_ux = 1

@@ -25,14 +25,14 @@ def observable_block(net):
 @pytest.mark.parametrize('flat', [False, True], ids=['plain', 'flat'])
 def test_short_block_training_stays_stable_and_saves_what_it_predicts(
         small_data, tmp_path, flat):
-    config = dataclasses.replace(tiny_config(), epochs=1)
+    config = tiny_config().replace(epochs=1)
     structure = block_koopman.BlockStructure(real_modes=2, radius=0.9, flat=flat)
     trainer = Trainer(config, tmp_path, progress=False, kind=kinds.Block(structure))
     net = trainer.fit(small_data.subset(np.arange(200)))
     assert isinstance(net, block_koopman.BlockKoopman) and trainer.history
     a_phi, coupling = observable_block(net)
     assert np.all(coupling == 0.0) and np.abs(np.linalg.eigvals(a_phi)).max() < 0.9
-    assert np.all(net.B.detach().numpy()[config.state_dim:] == 0.0)
+    assert np.all(net.B.detach().numpy()[config.model.state_dim:] == 0.0)
 
     save_model(tmp_path, net, config, trainer, small_data, small_data.subset(np.arange(20)),
                1.0, 'test')
@@ -40,7 +40,7 @@ def test_short_block_training_stays_stable_and_saves_what_it_predicts(
     a = net.A.detach().double().numpy()
     if flat:   # stored in the file's basis: z = T z_flat
         jacobian = net.anchor_jacobian().detach().double().numpy()
-        t = block_koopman.flat_basis(jacobian, config.lifted_dim)
+        t = block_koopman.flat_basis(jacobian, config.model.lifted_dim)
         a = t @ a @ np.linalg.inv(t)
     np.testing.assert_allclose(model.A, a, atol=1e-6)
     x0, u = small_data.x[:20, 0], small_data.u[:20]
@@ -53,12 +53,12 @@ def test_short_block_training_stays_stable_and_saves_what_it_predicts(
 def test_exported_a_is_the_materialised_one():
     config = tiny_config()
     structure = block_koopman.BlockStructure(real_modes=2, flat=False, observable_input=True)
-    net = block_koopman.BlockKoopman(config, structure=structure)
+    net = block_koopman.BlockKoopman(config.model, structure=structure)
     with torch.no_grad():
         net.top.normal_()
         net.real_raw.normal_()
     tensors = net.export_tensors()
-    assert set(tensors) == set(model_file.expected_shapes(config))
+    assert set(tensors) == set(model_file.expected_shapes(config.model))
     np.testing.assert_array_equal(tensors['A'], net.A.detach().double().numpy())
     tensors['A'][0, 0] += 1.0    # a copy, not a view of the parameters
     assert net.export_tensors()['A'][0, 0] != tensors['A'][0, 0]
@@ -83,7 +83,7 @@ def test_train_cli_fine_tunes_a_block_model(tiny_model, tmp_path):
                        '--quiet']) == 0
     meta = json.loads((out / 'model.json').read_text())
     assert meta['structure']['kind'] == 'block' and meta['init'] == str(tiny_model[0])
-    assert meta['config']['lift_dim'] == 4 and meta['config']['epochs'] == 1
+    assert meta['config']['lift_dim'] == 4 and meta['training']['epochs'] == 1
     model = lifted.LiftedModel.load(out)
     values = np.linalg.eigvals(model.A)
     local = np.linalg.eigvals(model.local_linear_model()[0])

@@ -1,6 +1,5 @@
 """Data-parallel training (DDP, gloo on the CPU) against one process on the same batches."""
 
-import dataclasses
 import json
 import socket
 import time
@@ -50,7 +49,7 @@ def free_port():
 def config():
     # weight_one_step stays 0: that term normalises by the batch's own std, which is per rank
     # under DDP (like BatchNorm without sync), so it is not a mean over windows.
-    return dataclasses.replace(tiny_config(), epochs=2, batch_size=WORLD * BLOCK)
+    return tiny_config().replace(epochs=2, batch_size=WORLD * BLOCK)
 
 
 def run_ranks(function, args, timeout=120.0):
@@ -100,7 +99,7 @@ def test_ddp_on_two_ranks_trains_to_the_weights_of_one_process(small_data, tmp_p
     difference = max(float(np.abs(got[k] - expected[k]).max()) for k in expected)
     print(f'DDP vs one process: max |weight difference| {difference:.2g}')
     assert difference < TOLERANCE, difference
-    alone = Trainer(dataclasses.replace(config(), batch_size=BLOCK), progress=False,
+    alone = Trainer(config().replace(batch_size=BLOCK), progress=False,
                     shuffle=False).fit(shards[0], validation=val).to_numpy()
     apart = max(float(np.abs(alone[k] - got[k]).max()) for k in got)
     assert apart > 10 * TOLERANCE, apart          # the comparison can fail
@@ -116,7 +115,7 @@ def test_ddp_on_two_ranks_trains_to_the_weights_of_one_process(small_data, tmp_p
 
 
 def test_a_process_group_of_one_is_the_single_process_path(small_data):
-    config_ = dataclasses.replace(tiny_config(), epochs=1)
+    config_ = tiny_config().replace(epochs=1)
     data = small_data.subset(np.arange(200))
     plain = Trainer(config_, progress=False).fit(data).to_numpy()
     dist.init_process_group('gloo', init_method=f'tcp://127.0.0.1:{free_port()}', rank=0,

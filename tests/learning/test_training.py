@@ -1,6 +1,5 @@
 """The deep Koopman model and its training (torch)."""
 
-import dataclasses
 import json
 
 import numpy as np
@@ -32,30 +31,30 @@ def test_training_lowers_loss_and_numpy_model_matches_torch(tiny_model, small_da
 
 
 def test_resume_continues_from_the_checkpoint(small_data, tmp_path):
-    first = training.Trainer(dataclasses.replace(tiny_config(), epochs=2), tmp_path,
+    first = training.Trainer(tiny_config().replace(epochs=2), tmp_path,
                              progress=False)
     first.fit(small_data)
-    longer = training.Trainer(dataclasses.replace(tiny_config(), epochs=3), tmp_path,
+    longer = training.Trainer(tiny_config().replace(epochs=3), tmp_path,
                               progress=False)
     longer.fit(small_data, resume=True)
     assert [h['epoch'] for h in longer.history] == [1, 2, 3]
     assert longer.history[:2] == first.history
-    other = training.Trainer(dataclasses.replace(tiny_config(), lift_dim=5), tmp_path,
+    other = training.Trainer(tiny_config().replace(lift_dim=5), tmp_path,
                              progress=False)
     with pytest.raises(ValueError, match=r"different \['lift_dim'\]"):
         other.fit(small_data, resume=True)
 
 
 def test_controllability_loss_and_rank():
-    config = model_file.KoopmanConfig()
+    tol = model_file.TrainingConfig().controllability_tol
     a = torch.diag(torch.tensor([0.5, 0.7, 0.9]))
-    good = deep_koopman.controllability_loss(a, torch.ones(3, 1), config)
-    bad = deep_koopman.controllability_loss(a, torch.tensor([[1.0], [1.0], [0.0]]), config)
+    good = deep_koopman.controllability_loss(a, torch.ones(3, 1), tol)
+    bad = deep_koopman.controllability_loss(a, torch.tensor([[1.0], [1.0], [0.0]]), tol)
     assert good.item() < 0.01 and bad.item() > 0.3
     assert lifted.controllability_rank(a.numpy(), np.ones((3, 1))) == 3
     assert lifted.controllability_rank(a.numpy(), np.array([[1.0], [1.0], [0.0]])) == 2
     b = torch.tensor([[1.0], [1.0], [1e-3]], requires_grad=True)
-    deep_koopman.controllability_loss(a, b, config).backward()
+    deep_koopman.controllability_loss(a, b, tol).backward()
     assert torch.isfinite(b.grad).all() and b.grad.abs().sum() > 0
 
 
@@ -71,7 +70,7 @@ def test_train_cli_rejects_bad_data_with_one_line(tmp_path, capsys):
 def test_equilibrium_loss_pins_the_reference_as_a_fixed_point(small_data):
     drifts = []
     for weight in (0.0, 10.0):
-        config = dataclasses.replace(tiny_config(), weight_equilibrium=weight)
+        config = tiny_config().replace(weight_equilibrium=weight)
         net = training.Trainer(config, progress=False).fit(small_data)
         with torch.no_grad():
             drifts.append(deep_koopman.equilibrium_drift(net).item())
@@ -80,10 +79,9 @@ def test_equilibrium_loss_pins_the_reference_as_a_fixed_point(small_data):
 
 @pytest.fixture(scope='module')
 def anchored_model(small_data):
-    config = dataclasses.replace(tiny_config(), anchor_equilibrium=True, weight_one_step=1.0,
-                                 epochs=2)
+    config = tiny_config().replace(anchor_equilibrium=True, weight_one_step=1.0, epochs=2)
     net = training.Trainer(config, progress=False).fit(small_data)
-    return net, lifted.LiftedModel(net.to_numpy(), config)
+    return net, lifted.LiftedModel(net.to_numpy(), config.model)
 
 
 def test_anchored_model_has_the_equilibrium_as_exact_fixed_point(anchored_model, small_data):
@@ -121,7 +119,7 @@ def test_one_step_loss_lowers_the_one_step_error(small_data):
     x = torch.as_tensor(small_data.x, dtype=torch.float32)
     u = torch.as_tensor(small_data.u, dtype=torch.float32)
     for weight in (0.0, 1.0):
-        config = dataclasses.replace(tiny_config(), weight_one_step=weight)
+        config = tiny_config().replace(weight_one_step=weight)
         net = training.Trainer(config, progress=False).fit(small_data)
         with torch.no_grad():
             errors_by_weight.append(deep_koopman.one_step_error(net, net.psi_x(x), u).item())
@@ -131,7 +129,7 @@ def test_one_step_loss_lowers_the_one_step_error(small_data):
 def test_to_numpy_is_a_snapshot_the_optimiser_cannot_change():
     """The trainer keeps its best epoch with to_numpy(); on the CPU .numpy() alone shares
     memory with the parameters, which Adam updates in place, so the "best" was the last."""
-    net = deep_koopman.DeepKoopman(tiny_config())
+    net = deep_koopman.DeepKoopman(tiny_config().model)
     snapshot = net.to_numpy()
     before = snapshot['A'].copy()
     with torch.no_grad():
@@ -141,7 +139,7 @@ def test_to_numpy_is_a_snapshot_the_optimiser_cannot_change():
 
 def test_the_returned_model_is_the_best_epoch(tiny_model, small_data):
     out, net, trainer = tiny_model
-    config = tiny_config()
+    config = tiny_config().training
     _, val = small_data.split(1.0 - config.validation_fraction, seed=config.seed)
     score = training.evaluate(net, val, trainer.device)
     assert score['summed_mse'] == pytest.approx(trainer.best['summed_mse'], rel=1e-6)

@@ -1,6 +1,5 @@
 """A model that evolves the scaled momentum l^p (1 + theta') in place of theta'."""
 
-import dataclasses
 
 import numpy as np
 import pytest
@@ -65,14 +64,14 @@ def test_the_coordinate_jacobians_match_central_differences(power):
 
 def test_a_power_outside_its_range_is_refused_in_one_line():
     with pytest.raises(ValueError, match=r'momentum_power must be in \[0.0, 2.0\], got 3'):
-        dataclasses.replace(tiny_config(), momentum_power=3)
+        tiny_config().replace(momentum_power=3)
 
 
 @pytest.fixture(scope='module')
 def momentum_model(small_data, tmp_path_factory):
     """(directory, torch model) of a tiny model trained on the scaled momentum."""
     out = tmp_path_factory.mktemp('momentum')
-    config = dataclasses.replace(tiny_config(), momentum_power=POWER, weight_physical=1.0)
+    config = tiny_config().replace(momentum_power=POWER, weight_physical=1.0)
     trainer = Trainer(config, out, progress=False)
     net = trainer.fit(small_data)
     save_model(out, net, config, trainer, small_data, small_data, 1.0, 'test')

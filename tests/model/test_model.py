@@ -61,6 +61,30 @@ def test_bad_model_files_give_one_clear_line(tiny_model, tmp_path, damage, messa
     assert '\n' not in str(error.value)
 
 
+def test_the_model_file_keeps_the_model_apart_from_its_training(tiny_model, tmp_path):
+    """`config` holds what the model is and `training` how it was trained; a file of the
+    earlier layout, both in `config`, reads the same."""
+    import json
+    tensors, config, meta = model_file.load(tiny_model[0])
+    written = json.loads((tiny_model[0] / model_file.META_FILE).read_text())
+    assert set(written['config']) == set(model_file.ModelConfig.__dataclass_fields__)
+    assert set(written['training']) == set(model_file.TrainingConfig.__dataclass_fields__)
+    assert written['training']['epochs'] == 4 and written['config']['lift_dim'] == 4
+    assert isinstance(config, model_file.ModelConfig) and not hasattr(config, 'epochs')
+    earlier = dict(written, config={**written['config'], **written['training'],
+                                    'scale_free_lifted_loss': False})   # retired, off
+    del earlier['training']
+    old = tmp_path / 'old'
+    model_file.save(old, tensors, config, {})
+    (old / model_file.META_FILE).write_text(json.dumps(earlier))
+    tensors_old, config_old, meta_old = model_file.load(old)
+    assert config_old == config and meta_old['training'] == meta['training']
+    recipe = model_file.KoopmanConfig.of(config_old, meta_old)
+    assert recipe.training.learning_rate == 3e-3 and recipe.model.hidden == 16
+    with pytest.raises(ValueError, match='nosuchfield'):
+        recipe.replace(nosuchfield=1)
+
+
 @pytest.mark.parametrize('name', ['koopman_default', 'koopman_paper', 'koopman_block',
                                   'koopman_block_fast', 'koopman_retrieval', 'koopman_momentum'])
 def test_shipped_model_error_on_fresh_data_stays_under_its_record(name):

@@ -57,6 +57,7 @@ def test_the_train_command_takes_the_networks_size():
     args = train.parser().parse_args(['--out', 'x', '--hidden', '64', '--layers', '2',
                                       '--input-hidden', '32', '--input-layers', '2'])
     config = train.config_from_args(args)
-    assert (config.hidden, config.layers, config.input_hidden, config.input_layers) == (
+    model = config.model
+    assert (model.hidden, model.layers, model.input_hidden, model.input_layers) == (
         64, 2, 32, 2)
-    assert train.config_from_args(train.parser().parse_args(['--out', 'x'])).hidden == 128
+    assert train.config_from_args(train.parser().parse_args(['--out', 'x'])).model.hidden == 128

@@ -14,7 +14,6 @@ file.
 """
 
 import argparse
-import dataclasses
 import os
 import sys
 import time
@@ -35,7 +34,7 @@ def load_data(args):
 
 
 def config_from_args(args, base=None):
-    """The defaults (or `base`, an init's config) with the flags given."""
+    """The defaults (or `base`, an init's KoopmanConfig) with the flags given."""
     overrides = {'epochs': args.epochs, 'weight_equilibrium': args.weight_equilibrium,
                  'weight_one_step': args.weight_one_step,
                  'momentum_power': args.momentum_power, 'weight_physical': args.weight_physical,
@@ -45,9 +44,7 @@ def config_from_args(args, base=None):
                  'seed': args.seed, 'batch_size': args.batch_size,
                  'learning_rate': args.learning_rate}
     overrides = {k: v for k, v in overrides.items() if v is not None}
-    if base is not None:
-        return dataclasses.replace(base, **overrides)
-    return model_file.KoopmanConfig(**overrides)
+    return (base or model_file.KoopmanConfig()).replace(**overrides)
 
 
 def kind_from_args(args, init_metadata=None):
@@ -138,7 +135,8 @@ def main(argv=None):
     try:
         init, base, init_metadata = None, None, None
         if args.init:       # a directory or a shipped model's name, as retrain takes it
-            init, base, init_metadata = model_file.load(shipped.resolve(args.init))
+            init, model_config, init_metadata = model_file.load(shipped.resolve(args.init))
+            base = model_file.KoopmanConfig.of(model_config, init_metadata)
         config = config_from_args(args, base)
         kind = kind_from_args(args, init_metadata)
         # --resume continues the run in --out, finished or not, also with more epochs
@@ -170,7 +168,7 @@ def main(argv=None):
     metrics = metadata['metrics']
     print(f"saved {args.out}: best epoch {trainer.best['epoch']}, test 30-step summed MSE "
           f"{metrics['test']['summed_mse']:.4g}, controllability rank "
-          f"{metrics['controllability_rank']}/{config.lifted_dim}, {seconds:.0f} s")
+          f"{metrics['controllability_rank']}/{config.model.lifted_dim}, {seconds:.0f} s")
     return 0
 
 

@@ -145,19 +145,20 @@ class DeepKoopman(nn.Module):
         return model
 
 
-def loss_terms(model, x, u):
-    """The three loss terms (scalars) for states x (B, T + 1, n) and tensions u (B, T)."""
+def loss_terms(model, x, u, training):
+    """The loss terms (scalars) for states x (B, T + 1, n) and tensions u (B, T); `training`:
+    the run's TrainingConfig."""
     config = model.config
     n = config.state_dim
     z_true = model.psi_x(x)
     z_hat = model.rollout(z_true[:, 0], u)
     steps = u.shape[1]
-    weights = config.gamma ** torch.arange(1, steps + 1, dtype=x.dtype, device=x.device)
+    weights = training.gamma ** torch.arange(1, steps + 1, dtype=x.dtype, device=x.device)
     weights = weights / weights.sum()
 
     state_error = ((z_hat[:, 1:, :n] - z_true[:, 1:, :n]) / model.state_std) ** 2
     reconstruction = (state_error.mean(dim=(0, 2)) * weights).sum()
-    if config.weight_physical:
+    if training.weight_physical:
         scale = x[:, 1:].std(dim=(0, 1)).detach() + 1e-9
         physical_error = ((model.physical_state(z_hat[:, 1:, :n]) - x[:, 1:]) / scale) ** 2
         physical = (physical_error.mean(dim=(0, 2)) * weights).sum()
@@ -167,7 +168,8 @@ def loss_terms(model, x, u):
     phi_error = ((phi_hat - phi_true) ** 2).mean(dim=(0, 2))
     lifted = ((state_error.mean(dim=(0, 2)) * n + phi_error * config.lift_dim)
               / config.lifted_dim * weights).sum()
-    return (reconstruction, lifted, controllability_loss(model.A, model.B, config),
+    controllability = controllability_loss(model.A, model.B, training.controllability_tol)
+    return (reconstruction, lifted, controllability,
             equilibrium_drift(model), one_step_error(model, z_true, u), physical)
 
 
@@ -193,7 +195,7 @@ def equilibrium_drift(model):
     return ((drift / model.config.h) ** 2).mean()
 
 
-def controllability_loss(a, b, config):
+def controllability_loss(a, b, tol):
     a, b = a.double(), b.double()   # the ratios reach 1e-10: beyond float32
     columns = [b[:, 0] / b[:, 0].norm().clamp_min(1e-12)]
     for _ in range(a.shape[0] - 1):
@@ -203,16 +205,16 @@ def controllability_loss(a, b, config):
     ratio = singular / singular[0]
     # Soft rank deficit: 1 - mean(s / (s + tol)). Its gradient is bounded by 1 / tol, unlike
     # log(s) or 1 / s, which would swamp the prediction terms through Adam's scaling.
-    tol = config.controllability_tol
     return 1.0 - (ratio / (ratio + tol)).mean()
 
 
-def total_loss(model, x, u):
-    rec, lift, ctrb, eq, step, physical = loss_terms(model, x, u)
-    config = model.config
-    total = (config.weight_reconstruction * rec + config.weight_lifted * lift
-             + config.weight_controllability * ctrb + config.weight_equilibrium * eq
-             + config.weight_one_step * step + config.weight_physical * physical)
+def total_loss(model, x, u, training):
+    """The weighted loss of `training` (a TrainingConfig) and its terms as floats."""
+    rec, lift, ctrb, eq, step, physical = loss_terms(model, x, u, training)
+    t = training
+    total = (t.weight_reconstruction * rec + t.weight_lifted * lift
+             + t.weight_controllability * ctrb + t.weight_equilibrium * eq
+             + t.weight_one_step * step + t.weight_physical * physical)
     return total, {'reconstruction': rec.item(), 'lifted': lift.item(),
                    'controllability': ctrb.item(), 'equilibrium': eq.item(),
                    'one_step': step.item(), 'physical': physical.item()}

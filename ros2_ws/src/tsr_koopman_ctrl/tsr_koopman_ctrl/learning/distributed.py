@@ -65,12 +65,13 @@ class Context:
             raise ValueError(f'too few windows: training windows per rank '
                              f'{[n for n, _ in sizes]}, validation {sum(v for _, v in sizes)}')
 
-    def objective(self, model, device):
-        """The training loss of `model`, (x, u) -> (loss, parts): under DDP its wrapped
-        forward, whose backward averages the gradients over the ranks."""
+    def objective(self, model, device, training):
+        """The training loss of `model` under `training` (a TrainingConfig), (x, u) -> (loss,
+        parts): under DDP its wrapped forward, whose backward averages the gradients over the
+        ranks."""
         if not self.active:
-            return lambda x, u: deep_koopman.total_loss(model, x, u)
-        return wrap(model, device)
+            return lambda x, u: deep_koopman.total_loss(model, x, u, training)
+        return wrap(model, device, training)
 
     def batches(self, count):
         """Batches per epoch: the least over the ranks (a rank taking fewer steps than the
@@ -177,18 +178,20 @@ class Objective(torch.nn.Module):
     """The training loss as a module's forward: DDP averages gradients only for a backward
     that follows its wrapped module's forward."""
 
-    def __init__(self, model):
+    def __init__(self, model, training):
         super().__init__()
         self.model = model
+        self.training_config = training
 
     def forward(self, x, u):
-        return deep_koopman.total_loss(self.model, x, u)
+        return deep_koopman.total_loss(self.model, x, u, self.training_config)
 
 
-def wrap(model, device):
+def wrap(model, device, training):
     """The model's loss under DDP. Buffers (the state normalisation) never change in training,
     so they are not synchronised at every step; DDP copies rank 0's parameters and buffers once,
     here."""
     from torch.nn.parallel import DistributedDataParallel
     ids = [device.index] if device.type == 'cuda' else None
-    return DistributedDataParallel(Objective(model), device_ids=ids, forward_sync_buffers=False)
+    return DistributedDataParallel(Objective(model, training), device_ids=ids,
+                                   forward_sync_buffers=False)

@@ -62,11 +62,6 @@ MIN_ANCHOR_SAMPLES = 100
 #: Fine-tuning starts at this fraction of the init's learning rate: a model already fitted
 #: should move, not restart.
 FINE_TUNE_LEARNING_RATE_FACTOR = 0.1
-#: Config keys that change the network or what it computes: a fine-tuned model keeps them.
-TRAINING_KEYS = {'epochs', 'batch_size', 'learning_rate', 'final_learning_rate',
-                 'validation_fraction', 'seed', 'gamma', 'controllability_tol',
-                 'weight_reconstruction', 'weight_lifted', 'weight_controllability',
-                 'weight_equilibrium', 'weight_one_step'}
 
 
 class UsageError(ValueError):
@@ -124,16 +119,17 @@ def checked_overrides(values):
     # retired option at its "off" value means nothing, as in a model file.
     values, unknown = model_file.KoopmanConfig.current_options(values)
     if unknown:
-        known = sorted(f.name for f in dataclasses.fields(model_file.KoopmanConfig))
+        known = sorted(model_file.KoopmanConfig.names())
         raise UsageError(f'--config-json: unknown field{"s" if len(unknown) > 1 else ""} '
                          f'{", ".join(unknown)} (known: {", ".join(known)})')
     return values
 
 
 def configure(options, out):
-    """(config, init record or None, init tensors or None, init config, model kind, init
-    envelope or None): the model to train and where from. A fine-tuned model keeps its kind
-    (`kinds.from_metadata`) and the envelope it was trained in; from scratch it is dense."""
+    """(config, init record or None, init tensors or None, init model config, model kind,
+    init envelope or None): the model to train and where from. A fine-tuned model keeps its
+    kind (`kinds.from_metadata`), its ModelConfig (what the network is and computes) and the
+    envelope it was trained in; from scratch it is dense."""
     args = options
     init, tensors, base, model_kind = None, None, model_file.KoopmanConfig(), kinds.Dense()
     envelope = None
@@ -141,7 +137,8 @@ def configure(options, out):
         raise UsageError('--from-scratch needs --init (without --init training is from scratch)')
     if args.init:
         path = shipped.resolve(args.init)
-        tensors, base, metadata = model_file.load(path)
+        tensors, model_config, metadata = model_file.load(path)
+        base = model_file.KoopmanConfig.of(model_config, metadata)
         if not args.from_scratch:
             try:
                 model_kind = kinds.from_metadata(metadata)
@@ -154,16 +151,18 @@ def configure(options, out):
         if os.path.realpath(out) == os.path.realpath(path):
             raise UsageError(f'--out {out} is the init model: write the new one elsewhere')
     fine_tune = init is not None and not args.from_scratch
-    values = dataclasses.asdict(base)
+    values = base.as_dict()
     overrides = checked_overrides(dict(args.config))
     if fine_tune:
-        fixed = sorted(k for k in overrides if k not in TRAINING_KEYS and overrides[k] != (
-            list(values.get(k)) if isinstance(values.get(k), tuple) else values.get(k)))
+        model = dataclasses.asdict(base.model)
+        fixed = sorted(k for k in overrides if k in model and overrides[k] != (
+            list(model[k]) if isinstance(model[k], tuple) else model[k]))
         if fixed:
             raise UsageError(f'cannot fine-tune with another {", ".join(fixed)} than the init '
                              'model: use --from-scratch')
         values['epochs'] = FINE_TUNE_EPOCHS
-        values['learning_rate'] = base.learning_rate * FINE_TUNE_LEARNING_RATE_FACTOR
+        values['learning_rate'] = (base.training.learning_rate
+                                   * FINE_TUNE_LEARNING_RATE_FACTOR)
     values.update(overrides)
     for key, value in (('epochs', args.epochs), ('learning_rate', args.learning_rate),
                        ('batch_size', args.batch_size), ('seed', args.seed)):
@@ -174,7 +173,7 @@ def configure(options, out):
         config = model_file.KoopmanConfig.from_dict(values)
     except (TypeError, ValueError) as error:
         raise UsageError(f'bad config: {error}')
-    return config, init, tensors, base, model_kind, envelope
+    return config, init, tensors, base.model, model_kind, envelope
 
 
 def loop_reading(args):
@@ -203,14 +202,14 @@ def anchored(config, anchor, zone_commands):
     equilibrium; `zone_commands` are the bags' {'steps', 'sum'}, each step counted once); kept
     as it is with fewer than MIN_ANCHOR_SAMPLES such steps."""
     if anchor == 'init':
-        return config, {'source': 'init', 'tension': config.anchor_tension}
+        return config, {'source': 'init', 'tension': config.model.anchor_tension}
     if anchor != 'data':
         return with_anchor(config, anchor), {'source': 'given', 'tension': anchor}
     count = sum(int(z['steps']) for z in zone_commands)
     total = sum(float(z['sum']) for z in zone_commands)
     if count < MIN_ANCHOR_SAMPLES:
         return config, {'source': f'init (only {count} in-zone steps to estimate from)',
-                        'tension': config.anchor_tension, 'samples': count}
+                        'tension': config.model.anchor_tension, 'samples': count}
     tension = total / count
     return with_anchor(config, tension), {'source': f'data ({count} in-zone steps)',
                                           'tension': tension, 'samples': count}
@@ -218,7 +217,7 @@ def anchored(config, anchor, zone_commands):
 
 def with_anchor(config, tension):
     try:
-        return dataclasses.replace(config, anchor_tension=float(tension))
+        return config.replace(anchor_tension=float(tension))
     except ValueError as error:
         raise UsageError(f'bad --anchor: {error}')
 
@@ -362,10 +361,10 @@ def read_bag_set(bags, held_out, args, config, context, say):
     if both:
         raise UsageError(f'{", ".join(both)}: given to train on and held out; a bag is one or '
                          'the other')
-    held_options = {'steps': args.steps, 'namespace': args.namespace, 'h': config.h,
-                    'state_dim': config.state_dim, **loop_reading(args)}
+    held_options = {'steps': args.steps, 'namespace': args.namespace, 'h': config.model.h,
+                    'state_dim': config.model.state_dim, **loop_reading(args)}
     options = dict(held_options, stride=args.stride,
-                   validation_fraction=config.validation_fraction)
+                   validation_fraction=config.training.validation_fraction)
     by_bags = len(train_paths) >= context.world_size
     mine = (distributed.shard(list(range(len(train_paths))), context) if by_bags
             else list(range(len(train_paths))))
@@ -440,7 +439,7 @@ def test_sets(found, held_out, args, config, say):
             'saw', file=sys.stderr)
     if args.test_trajectories:
         tests['table1'], _ = datasets.sample(datasets.SamplingConfig(
-            trajectories=args.test_trajectories, steps=args.steps, h=config.h,
+            trajectories=args.test_trajectories, steps=args.steps, h=config.model.h,
             seed=datasets.TEST_SEED))
     return tests
 
@@ -465,8 +464,8 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
     if anchor not in ('data', 'init'):
         with_anchor(config, anchor)     # checked before the bags are read; anchored() applies it
     fine_tune = init is not None and init['fine_tuned']
-    if config.batch_size % context.world_size:
-        raise UsageError(f'--batch-size {config.batch_size} does not split evenly over '
+    if config.training.batch_size % context.world_size:
+        raise UsageError(f'--batch-size {config.training.batch_size} does not split evenly over '
                          f'{context.world_size} ranks')
     if not held_out and not args.test_trajectories:
         raise UsageError('nothing to test on: give --held-out bags or --test-trajectories > 0')
@@ -476,13 +475,14 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
     recorded_windows = len(data)
     config, anchor_record = anchored(
         config, anchor, [found.train[i]['provenance']['zone_commands'] for i in found.used])
-    say(f"anchor tension {config.anchor_tension:.4f} ({anchor_record['source']})", flush=True)
+    say(f"anchor tension {config.model.anchor_tension:.4f} ({anchor_record['source']})",
+        flush=True)
     sampled = None
     if args.sampled_ratio > 0:
         count = int(round(args.sampled_ratio * len(data)))
         if count:
             sampled, _ = datasets.sample(datasets.SamplingConfig(
-                trajectories=count, steps=args.steps, h=config.h,
+                trajectories=count, steps=args.steps, h=config.model.h,
                 seed=args.data_seed + context.rank))
             data = datasets.concatenate([data, sampled])
     total_validation = sum(distributed.gather(len(validation) if validation is not None else 0))
@@ -543,7 +543,7 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
         'sampled_ratio': args.sampled_ratio, 'sampled_trajectories': total_sampled,
         'errors_before': before, 'errors_after': after,
         'world_size': context.world_size, 'sharding': 'bags' if found.by_bags else 'windows',
-        'per_rank_batch': config.batch_size // context.world_size,
+        'per_rank_batch': config.training.batch_size // context.world_size,
         'git_commit': git_commit(), 'command': command}
     summary = DataSummary(bag_provenance + sampled_provenance,
                           total_recorded + total_sampled)
@@ -552,4 +552,4 @@ def retrain(bags, out, held_out=(), options=None, context=None, command=None):
                extra={'retrain': record}, envelope=envelope)
     return RetrainResult(model=str(out), errors_before=before, errors_after=after,
                          best_epoch=trainer.best['epoch'], seconds=seconds,
-                         anchor_tension=config.anchor_tension, provenance=record)
+                         anchor_tension=config.model.anchor_tension, provenance=record)

@@ -71,7 +71,7 @@ class Trainer:
 
     def __init__(self, config, out_dir=None, device=None, progress=True, shuffle=True,
                  kind=None):
-        self.config = config
+        self.config = config        # a KoopmanConfig: the model and its training
         self.kind = kind or kinds.Dense()
         self.out_dir = pathlib.Path(out_dir) if out_dir else None
         self.context = distributed.current()
@@ -88,7 +88,7 @@ class Trainer:
         normalised on the training states. `validation`: the windows the best epoch is chosen
         on, instead of a `validation_fraction` split of `data`. Under DDP `data` and
         `validation` are this rank's shard."""
-        config, context = self.config, self.context
+        config, context = self.config.training, self.context
         torch.manual_seed(config.seed)
         if validation is None:
             train, val = data.split(1.0 - config.validation_fraction, seed=config.seed)
@@ -98,9 +98,9 @@ class Trainer:
         per_rank = config.batch_size // context.world_size
         # An init keeps its own normalisation; a new model is normalised on the training states.
         mean, std = (None, None) if init is not None else self.normalisation(train)
-        model = self.kind.build(config, init, mean, std)
+        model = self.kind.build(self.config.model, init, mean, std)
         model.to(self.device)
-        objective = context.objective(model, self.device)
+        objective = context.objective(model, self.device, config)
         optimiser = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
         batches = context.batches(len(train) // per_rank)
         scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
@@ -146,7 +146,7 @@ class Trainer:
         """(mean, std) of the training states in the model's coordinates (over every rank
         under DDP)."""
         flat = coordinates.to_model(train.x.reshape(-1, train.x.shape[2]),
-                                    self.config.momentum_power)
+                                    self.config.model.momentum_power)
         mean, std = self.context.normalisation(flat)
         return mean, std + 1e-8
 
@@ -175,7 +175,7 @@ class Trainer:
                  'optimiser': optimiser.state_dict(), 'scheduler': scheduler.state_dict(),
                  'best_tensors': {k: torch.as_tensor(v) for k, v in self.best_tensors.items()},
                  'best': json.dumps(self.best), 'history': json.dumps(self.history),
-                 'config': json.dumps(dataclasses.asdict(self.config))}
+                 'config': json.dumps(self.config.as_dict())}
         partial = self.out_dir / (CHECKPOINT + '.partial')
         torch.save(state, partial)
         partial.replace(self.out_dir / CHECKPOINT)
@@ -190,7 +190,7 @@ class Trainer:
         except Exception as error:   # torch raises many kinds for a damaged file
             raise ValueError(f'cannot resume: {path} is damaged or not a checkpoint '
                              f'({type(error).__name__})')
-        current = json.loads(json.dumps(dataclasses.asdict(self.config)))
+        current = json.loads(json.dumps(self.config.as_dict()))
         # More epochs than before is allowed: that continues training.
         differ = sorted(k for k in current if saved.get(k) != current[k] and k != 'epochs')
         if differ:
@@ -198,7 +198,8 @@ class Trainer:
         model.load_state_dict(state['model'])
         optimiser.load_state_dict(state['optimiser'])
         scheduler.load_state_dict(state['scheduler'])
-        scheduler.T_max = self.config.epochs * batches   # the (possibly longer) new schedule
+        # the (possibly longer) new schedule
+        scheduler.T_max = self.config.training.epochs * batches
         self.best_tensors = {k: v.cpu().numpy() for k, v in state['best_tensors'].items()}
         self.best = json.loads(state['best'])
         self.history = json.loads(state['history'])
@@ -215,7 +216,8 @@ def versions():
 
 def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, command,
                extra=None, envelope=None):
-    """Write the model with its test metrics, controllability rank and provenance; `extra`:
+    """Write the model (`config`: its KoopmanConfig) with its test metrics, controllability
+    rank and provenance; `extra`:
     more metadata (a dict merged in); `envelope`: the box of its training states
     (`dataset.envelope`), which the supervisor checks states against. `train_data` needs only
     `provenance` and len()."""
@@ -225,7 +227,8 @@ def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, 
         'metrics': {'test': test, 'validation_best': trainer.best,
                     'controllability_rank': lifted.controllability_rank(
                         tensors['A'], tensors['B']),
-                    'lifted_dim': config.lifted_dim},
+                    'lifted_dim': config.model.lifted_dim},
+        'training': dataclasses.asdict(config.training),
         'history': trainer.history,
         'data': {'train': train_data.provenance, 'test': test_data.provenance,
                  'train_trajectories': len(train_data), 'test_trajectories': len(test_data)},
@@ -236,5 +239,5 @@ def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, 
     record = trainer.kind.record(model)
     if record is not None:      # how the kind was built, so a fine-tune builds it again
         metadata['structure'] = record
-    model_file.save(out_dir, tensors, config, metadata)
+    model_file.save(out_dir, tensors, config.model, metadata)
     return metadata

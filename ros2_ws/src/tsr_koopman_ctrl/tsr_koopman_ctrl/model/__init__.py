@@ -8,5 +8,6 @@ No torch here: the controller's hot path is numpy; training lives in `tsr_koopma
 """
 
 from tsr_koopman_ctrl.model.lifted import (controllability_rank, LiftedModel)  # noqa: F401
-from tsr_koopman_ctrl.model.model_file import KoopmanConfig, ModelFileError  # noqa: F401
+from tsr_koopman_ctrl.model.model_file import (KoopmanConfig, ModelConfig,  # noqa: F401
+                                               ModelFileError, TrainingConfig)
 from tsr_koopman_ctrl.model.shipped import DEFAULT_MODEL, resolve  # noqa: F401

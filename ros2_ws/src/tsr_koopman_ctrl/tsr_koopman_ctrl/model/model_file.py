@@ -1,9 +1,11 @@
-"""The deep Koopman model file: its hyperparameters, tensor layout, writer and reader.
+"""The deep Koopman model file: its configs, tensor layout, writer and reader.
 
 A model is a directory::
 
     <model>/weights.safetensors   every tensor (networks, A, B, state normalisation), no pickle
-    <model>/model.json            format version, config, metrics, data provenance, versions
+    <model>/model.json            format version, the model's config (`ModelConfig`), its
+                                  training's (`TrainingConfig`), metrics, data provenance,
+                                  versions
 
 safetensors cannot carry code, so loading a model never executes anything. The reader checks
 the names and shapes of every tensor against the config and turns any problem (missing, truncated,
@@ -58,8 +60,9 @@ def refuse_code(meta, meta_path):
 
 
 @dataclasses.dataclass(frozen=True)
-class KoopmanConfig:
-    """Every hyperparameter of the model and its training, saved with the model."""
+class ModelConfig:
+    """What a model is: its networks, its coordinates, its sample period and the plant it
+    holds; saved with the model as `config` and all that evaluating it needs."""
 
     state_dim: int = 4
     lift_dim: int = 36            # K: learned observables Phi(x); the lifted state has K + n
@@ -74,14 +77,6 @@ class KoopmanConfig:
     min_input_gain: float = 0.05
     tension_range: tuple = (0.0, 5.0)
     h: float = 0.01
-    # Loss L = w_rec L_rec + w_lift L_lift + w_ctrb L_ctrb (paper: 0.5, 1.0, 0.1).
-    weight_reconstruction: float = 0.5
-    weight_lifted: float = 1.0
-    weight_controllability: float = 0.1
-    #: Not in the paper: weight of L_eq, the drift of the lifted model at the known equilibrium
-    #: (x = 0, u = anchor_tension), per unit tau: z_d = psi_x(0) must be a fixed point for LQR
-    #: about it.
-    weight_equilibrium: float = 0.0
     #: Not in the paper: Phi(x) - Phi(0) and psi_uu(u) - psi_uu(u_d) (u_d = anchor_tension) in
     #: place of Phi and psi_uu, so z = 0 is psi_x(0) and u_hat = 0 is psi_u(0, u_d): the
     #: known equilibrium is an exact fixed point of the lifted model (no drift at the state
@@ -92,40 +87,18 @@ class KoopmanConfig:
     #: plant whose actuator or mass differs anchors where that plant's data settles (retrain's
     #: --anchor data), since psi_uu(u) - psi_uu(3) cannot hold a plant that needs 3.33.
     anchor_tension: float = 3.0
-    #: Not in the paper: weight of L_step, the relative one-step error from every measured state
-    #: (what a controller that lifts each measurement relies on).
-    weight_one_step: float = 0.0
     #: Not in the paper: the exponent p of the scaled momentum l^p (1 + theta') the model
     #: evolves in place of theta' (`model.coordinates`; 0: the physical state).
     momentum_power: float = 0.0
-    #: Not in the paper: weight of L_phys, L_rec taken on the physical state read back from
-    #: the model's own (the same as L_rec when momentum_power is 0).
-    weight_physical: float = 0.0
-    gamma: float = 1.0 - 1e-3
-    #: L_ctrb is near zero once every normalised singular value of the controllability matrix
-    #: is well above this (a differentiable stand-in for "full rank"; rank reported separately).
-    controllability_tol: float = 1e-4
-    # Training.
-    epochs: int = 30
-    batch_size: int = 256
-    learning_rate: float = 1e-3
-    final_learning_rate: float = 1e-5
-    validation_fraction: float = 0.1
-    seed: int = 0
 
     def __post_init__(self):
-        positive = ('state_dim', 'lift_dim', 'hidden', 'layers', 'input_hidden', 'input_layers',
-                    'input_terms', 'epochs', 'batch_size')
-        for name in positive:
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
+        _positive(self, ('state_dim', 'lift_dim', 'hidden', 'layers', 'input_hidden',
+                         'input_layers', 'input_terms'))
         if self.activation not in ACTIVATIONS:
             raise ValueError(f'activation must be one of {ACTIVATIONS}, got {self.activation!r}')
         if not 0.0 < self.h < float('inf'):      # NaN fails too
             raise ValueError(f'h (the sample period in tau) must be > 0 and finite, '
                              f'got {self.h}')
-        if not 0.0 < self.gamma <= 1.0:
-            raise ValueError(f'gamma must be in (0, 1], got {self.gamma}')
         if not self.tension_range[0] <= self.anchor_tension <= self.tension_range[1]:
             raise ValueError(f'anchor_tension must lie in tension_range {self.tension_range}, '
                              f'got {self.anchor_tension}')
@@ -140,23 +113,101 @@ class KoopmanConfig:
     def lifted_dim(self):
         return self.lift_dim + self.state_dim
 
+
+@dataclasses.dataclass(frozen=True)
+class TrainingConfig:
+    """How a model was trained: its loss and its optimisation; saved with the model as
+    `training`, read again only by a fine-tune or a resumed run."""
+
+    # Loss L = w_rec L_rec + w_lift L_lift + w_ctrb L_ctrb (paper: 0.5, 1.0, 0.1).
+    weight_reconstruction: float = 0.5
+    weight_lifted: float = 1.0
+    weight_controllability: float = 0.1
+    #: Not in the paper: weight of L_eq, the drift of the lifted model at the known equilibrium
+    #: (x = 0, u = anchor_tension), per unit tau: z_d = psi_x(0) must be a fixed point for LQR
+    #: about it.
+    weight_equilibrium: float = 0.0
+    #: Not in the paper: weight of L_step, the relative one-step error from every measured state
+    #: (what a controller that lifts each measurement relies on).
+    weight_one_step: float = 0.0
+    #: Not in the paper: weight of L_phys, L_rec taken on the physical state read back from
+    #: the model's own (the same as L_rec when momentum_power is 0).
+    weight_physical: float = 0.0
+    gamma: float = 1.0 - 1e-3
+    #: L_ctrb is near zero once every normalised singular value of the controllability matrix
+    #: is well above this (a differentiable stand-in for "full rank"; rank reported separately).
+    controllability_tol: float = 1e-4
+    epochs: int = 30
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    final_learning_rate: float = 1e-5
+    validation_fraction: float = 0.1
+    seed: int = 0
+
+    def __post_init__(self):
+        _positive(self, ('epochs', 'batch_size'))
+        if not 0.0 < self.gamma <= 1.0:
+            raise ValueError(f'gamma must be in (0, 1], got {self.gamma}')
+
+
+def _positive(config, names):
+    for name in names:
+        if int(getattr(config, name)) < 1:
+            raise ValueError(f'{name} must be >= 1, got {getattr(config, name)}')
+
+
+def _names(cls):
+    return tuple(f.name for f in dataclasses.fields(cls))
+
+
+@dataclasses.dataclass(frozen=True)
+class KoopmanConfig:
+    """A training run's recipe: the model to build (`model`) and how to train it
+    (`training`). Train and retrain take its fields by their flat names
+    (`KoopmanConfig.from_dict({'lift_dim': 36, 'epochs': 30})`); the model file keeps the two
+    apart."""
+
+    model: ModelConfig = ModelConfig()
+    training: TrainingConfig = TrainingConfig()
+
+    @staticmethod
+    def names():
+        """Every field's flat name, the model's first."""
+        return _names(ModelConfig) + _names(TrainingConfig)
+
     @classmethod
     def current_options(cls, values):
         """(`values` without retired options at their "off" value, the sorted names among them
         that are no config field)."""
         values = {k: v for k, v in values.items()
                   if not (k in RETIRED_OPTIONS and v == RETIRED_OPTIONS[k])}
-        return values, sorted(set(values) - {f.name for f in dataclasses.fields(cls)})
+        return values, sorted(set(values) - set(cls.names()))
 
     @classmethod
     def from_dict(cls, values):
-        values, unknown = cls.current_options(values)
+        """From flat field names; an unknown one is a ValueError."""
+        return cls().replace(**values)
+
+    def replace(self, **values):
+        """A copy with the fields named (flat names) changed."""
+        values, unknown = self.current_options(values)
         if unknown:
             raise ValueError(f'unknown config keys {unknown}')
-        values = dict(values)
         if 'tension_range' in values:
             values['tension_range'] = tuple(values['tension_range'])
-        return cls(**values)
+        model = {k: v for k, v in values.items() if k in _names(ModelConfig)}
+        training = {k: v for k, v in values.items() if k in _names(TrainingConfig)}
+        return KoopmanConfig(dataclasses.replace(self.model, **model),
+                             dataclasses.replace(self.training, **training))
+
+    def as_dict(self):
+        """Every field by its flat name."""
+        return {**dataclasses.asdict(self.model), **dataclasses.asdict(self.training)}
+
+    @classmethod
+    def of(cls, model, metadata):
+        """The recipe a model file was trained with: its config and its `training` record."""
+        return cls(model, TrainingConfig(**metadata.get('training', {})))
 
 
 def weights_sha256(directory):
@@ -197,8 +248,9 @@ def expected_shapes(config):
 
 
 def save(directory, tensors, config, metadata):
-    """Write a model: `tensors` name -> numpy array (checked against `config`), `metadata` a
-    JSON-able dict (metrics, provenance, ...). Files are replaced atomically."""
+    """Write a model: `tensors` name -> numpy array (checked against `config`, a ModelConfig),
+    `metadata` a JSON-able dict (its `training`: the TrainingConfig fields; metrics,
+    provenance, ...). Files are replaced atomically."""
     from safetensors.numpy import save_file
     directory = pathlib.Path(directory)
     check_tensors(tensors, config, directory / WEIGHTS_FILE)
@@ -227,14 +279,26 @@ def load(directory):
     meta = read_metadata(meta_path)
     refuse_code(meta, meta_path)
     if not isinstance(meta.get('config'), dict):
-        raise ModelFileError(f'{meta_path}: no config object (the KoopmanConfig fields)')
+        raise ModelFileError(f'{meta_path}: no config object (the ModelConfig fields)')
     try:
-        config = KoopmanConfig.from_dict(meta['config'])
+        config, meta['training'] = split_config(meta['config'], meta.get('training'))
     except (KeyError, TypeError, ValueError) as error:
         raise ModelFileError(f'{meta_path}: bad config ({error})')
     tensors = read_weights(weights_path)
     check_tensors(tensors, config, weights_path)
     return {k: v.astype(np.float64) for k, v in tensors.items()}, config, meta
+
+
+def split_config(values, training=None):
+    """(ModelConfig, the TrainingConfig fields) of a model file's `config` and `training`.
+    Files written before the two were kept apart hold both in `config`."""
+    values, unknown = KoopmanConfig.current_options(values)
+    if unknown:
+        raise ValueError(f'unknown config keys {unknown}')
+    recipe = KoopmanConfig().replace(**values)
+    if not set(values) & set(_names(TrainingConfig)):
+        recipe = recipe.replace(**dict(training or {}))
+    return recipe.model, dataclasses.asdict(recipe.training)
 
 
 def read_metadata(path):
