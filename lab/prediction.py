@@ -199,12 +199,9 @@ def parser():
     return p
 
 
-def figure(page, marker):
-    """Where the plot goes for the page: its figures/ folder, named after the markers."""
-    return os.path.join(os.path.dirname(page), figure_name(marker))
-
-
 def figure_name(marker):
+    """Where the plot goes, relative to the page: its figures/ folder, named after the
+    markers."""
     return os.path.join('figures', f'{marker}.png')
 
 

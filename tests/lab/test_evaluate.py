@@ -43,7 +43,7 @@ def test_evaluate_writes_its_table_and_plot_into_the_page(tiny_model, tmp_path):
         assert f"| {method} | {figures['summed_mse']:.4g} |" in table
     plot = page.parent / 'figures' / 'eval.png'
     assert plot.read_bytes() == (out / 'error_vs_step.png').read_bytes()
-    assert evaluate.figure(str(page), 'eval') == str(plot)
+    assert page.parent / evaluate.figure_name('eval') == plot
 
 
 def test_evaluate_refuses_a_page_without_its_markers_before_any_work(tiny_model, tmp_path,

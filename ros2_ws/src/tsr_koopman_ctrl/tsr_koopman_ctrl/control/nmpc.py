@@ -10,7 +10,7 @@ flown, then `interval` up to `horizon`: 39 intervals, 360 samples, 3.6 tau by de
 states p_0 = x, p_1..p_N on the map,
 
     min  sum_j d_j (sum_i q_i m(y_{j+1,i}) + r (u_j - 3)^2) + y_N' P y_N
-    s.t. |theta_j| <= theta_max - margin,  l_j - 1 <= overshoot_max,  l_j >= LENGTH_FLOOR
+    s.t. |theta_j| <= theta_max - margin,  l_j - 1 <= overshoot_max,  l_j >= PLAN_MIN_LENGTH
          (soft, every node), 0 <= u_j <= u_max
 
 with y = [theta, theta', ln l, l'] (a swing bound limits l' / l, so progress is exponential in
@@ -71,7 +71,7 @@ NO_SWING_BOUND = np.pi
 THETA_MARGIN = 0.003
 #: The plans keep the predicted tether this long at least (half the paper's initial length):
 #: the learned map is not trusted on a tether about to be reeled in completely.
-LENGTH_FLOOR = 0.005
+PLAN_MIN_LENGTH = 0.005
 #: QP steps of the cold start (single shooting, from the LQR plan), and halvings of a step
 #: whose rollout leaves the domain before the step is refused.
 COLD_ITERATIONS = 5
@@ -408,10 +408,10 @@ class Nmpc(Law):
         return plan, self.floored(nodes)
 
     def floored(self, nodes):
-        """Node states with l >= LENGTH_FLOOR and finite (a plan's linear prediction may reel
+        """Node states with l >= PLAN_MIN_LENGTH and finite (a plan's linear prediction may reel
         the tether in past it; the map is not evaluated there)."""
         nodes = np.nan_to_num(nodes, nan=0.0, posinf=10.0, neginf=-10.0)
-        np.maximum(nodes[:, dynamics.LENGTH_OFFSET], LENGTH_FLOOR - 1.0,
+        np.maximum(nodes[:, dynamics.LENGTH_OFFSET], PLAN_MIN_LENGTH - 1.0,
                    out=nodes[:, dynamics.LENGTH_OFFSET])
         return nodes
 
@@ -481,7 +481,7 @@ class Nmpc(Law):
             upper.append(self.theta_bound - theta)
         offset = states[:, dynamics.LENGTH_OFFSET]
         rows.append(g[:, dynamics.LENGTH_OFFSET])
-        lower.append(LENGTH_FLOOR - 1.0 - offset)
+        lower.append(PLAN_MIN_LENGTH - 1.0 - offset)
         upper.append((s.overshoot_max if s.overshoot_max < 10.0 else np.inf) - offset)
         rows = np.vstack(rows)
         soft = np.r_[np.zeros(n_nodes, dtype=bool), np.ones(len(rows), dtype=bool)]
@@ -534,9 +534,9 @@ def lag_model(durations, lag, h=dynamics.PAPER_STEP):
 
 
 def in_domain(nodes):
-    """True if node states (..., n) are finite and keep the tether longer than LENGTH_FLOOR."""
+    """True if node states (..., n) are finite and keep the tether longer than PLAN_MIN_LENGTH."""
     return bool(np.all(np.isfinite(nodes))
-                and np.all(nodes[..., dynamics.LENGTH_OFFSET] > LENGTH_FLOOR - 1.0))
+                and np.all(nodes[..., dynamics.LENGTH_OFFSET] > PLAN_MIN_LENGTH - 1.0))
 
 
 def condense(nodes, end, a, b):
