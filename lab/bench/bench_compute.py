@@ -13,6 +13,8 @@ timed.
 """
 
 import argparse
+import os
+import sys
 
 import numpy as np
 from tsr_sim import dynamics
@@ -23,6 +25,10 @@ from tsr_koopman_ctrl.control.offset_free import ObserverSettings
 from tsr_koopman_ctrl.control.registry import preset
 from tsr_koopman_ctrl.evaluation import PAPER_START
 
+# Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.printed import add_options, Printed  # noqa: E402
+
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
@@ -32,7 +38,9 @@ def main():
                         help='wrap each law in the disturbance observer (the node default)')
     parser.add_argument('--preset', help="settings preset, by path or by name under config/ "
                         "('untuned', 'tuned_settle', 'tuned_cross'; default: the laws' defaults)")
+    add_options(parser)
     args = parser.parse_args()
+    say = Printed(parser, args)
     try:
         settings = preset(args.preset) if args.preset else {}
     except ValueError as error:
@@ -49,15 +57,16 @@ def main():
                      law.fallbacks))
     base = next((r[1] for r in rows if r[0] == 'linear_lqr'), None)
     kind = 'offset-free' if args.offset_free else 'bare'
-    print(f"{args.steps} steps from the paper start, {kind} laws, "
-          f"{args.preset or 'default'} settings; h = {h} tau = "
-          f'{period_us / 1e6:.2f} s')
-    print(f"{'law':16s} {'median us':>10s} {'p99 us':>10s} {'max us':>10s} "
-          f"{'median / h':>11s} {'p99 / h':>9s} {'x linear_lqr':>13s} {'fallbacks':>9s}")
+    say(f"{args.steps} steps from the paper start, {kind} laws, "
+        f"{args.preset or 'default'} settings; h = {h} tau = "
+        f'{period_us / 1e6:.2f} s')
+    say(f"{'law':16s} {'median us':>10s} {'p99 us':>10s} {'max us':>10s} "
+        f"{'median / h':>11s} {'p99 / h':>9s} {'x linear_lqr':>13s} {'fallbacks':>9s}")
     for name, median, p99, worst, fallbacks in rows:
         versus = f'{median / base:13.1f}' if base else f"{'-':>13s}"
-        print(f'{name:16s} {median:10.1f} {p99:10.1f} {worst:10.1f} '
-              f'{median / period_us:11.2e} {p99 / period_us:9.2e} {versus} {fallbacks:9d}')
+        say(f'{name:16s} {median:10.1f} {p99:10.1f} {worst:10.1f} '
+            f'{median / period_us:11.2e} {p99 / period_us:9.2e} {versus} {fallbacks:9d}')
+    say.publish()
 
 
 if __name__ == '__main__':

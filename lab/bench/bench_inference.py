@@ -8,6 +8,8 @@ Figures (microseconds, median and p99 over `--repeats` calls on states along a d
 """
 
 import argparse
+import os
+import sys
 import time
 
 import numpy as np
@@ -17,6 +19,10 @@ from tsr_koopman_ctrl.control import closed_loop, LinearisedLqr, make_controller
 from tsr_koopman_ctrl.learning import deep_koopman
 from tsr_koopman_ctrl.model import DEFAULT_MODEL, LiftedModel, model_file, resolve
 from tsr_sim import dynamics
+
+# Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.printed import add_options, Printed  # noqa: E402
 
 
 def timings(function, inputs, repeats):
@@ -34,7 +40,9 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--model', default=DEFAULT_MODEL)
     parser.add_argument('--repeats', type=int, default=3000)
+    add_options(parser)
     args = parser.parse_args()
+    say = Printed(parser, args)
     torch.set_num_threads(1)
     states, _ = closed_loop(LinearisedLqr(), dynamics.PAPER_INITIAL_STATE, 1000)
     model = LiftedModel.load(args.model)
@@ -59,10 +67,11 @@ def main():
         controller = make_controller(name, **options)
         rows.append((f'{name} compute', *timings(controller.compute, states,
                                                  max(300, args.repeats // 5))))
-    print(f"{'what':32s} {'median us':>10s} {'p99 us':>10s}")
+    say(f"{'what':32s} {'median us':>10s} {'p99 us':>10s}")
     for name, median, p99 in rows:
-        print(f'{name:32s} {median:10.1f} {p99:10.1f}')
-    print(f'torch / numpy (median) for the lifting: {ratio:.1f}x')
+        say(f'{name:32s} {median:10.1f} {p99:10.1f}')
+    say(f'torch / numpy (median) for the lifting: {ratio:.1f}x')
+    say.publish()
 
 
 if __name__ == '__main__':

@@ -8,6 +8,7 @@ clock; the log times are sim time, as rosbag2 records on sim time).
 
 import argparse
 import os
+import sys
 import tempfile
 
 from tsr_sim.wire import resolve, STATE_TOPIC
@@ -16,6 +17,27 @@ from tsr_koopman_ctrl.bag import BagReader
 from tsr_koopman_ctrl.control.registry import DEFAULT_LAW
 from tsr_koopman_ctrl.control.settings import parse_assignments
 from tsr_koopman_ctrl.deployment import Deployment
+
+# Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.printed import add_options, Printed  # noqa: E402
+
+
+#: The transport alone: linear_lqr without an observer computes in ~2 us a step.
+TRANSPORT = ('linear_lqr', parse_assignments(['observer.disturbance=none']),
+             'observer.disturbance=none')
+
+
+def lockstep(law, settings, steps):
+    """(steps, seconds between the first and the last state published) of a deployment."""
+    with tempfile.TemporaryDirectory() as tmp:
+        run = Deployment(law, settings, steps=steps, bags=os.path.join(tmp, 'bags'),
+                         logs=os.path.join(tmp, 'logs')).run()
+        if run.halted:
+            raise SystemExit(f'deployment of {law} failed: the state left the model domain')
+        times = [m.publish_time_ns
+                 for m in BagReader(run.bag).messages({resolve(STATE_TOPIC)})]
+    return len(times) - 1, (times[-1] - times[0]) * 1e-9
 
 
 def main():
@@ -27,23 +49,29 @@ def main():
                         'transport alone')
     parser.add_argument('--set', action='append', default=[], metavar='LAW.SETTING=VALUE',
                         help='a controller setting, as deploy --set')
+    parser.add_argument('--no-baseline', action='store_true',
+                        help='skip the comparison run: linear_lqr without an observer, the '
+                        'transport alone')
+    add_options(parser)
     args = parser.parse_args()
+    say = Printed(parser, args)
     try:
         settings = parse_assignments(args.set)
     except ValueError as error:
         parser.error(str(error))
-    with tempfile.TemporaryDirectory() as tmp:
-        run = Deployment(args.law, settings, steps=args.steps, bags=os.path.join(tmp, 'bags'),
-                         logs=os.path.join(tmp, 'logs')).run()
-        if run.halted:
-            raise SystemExit('deployment failed: the state left the model domain')
-        times = [m.publish_time_ns
-                 for m in BagReader(run.bag).messages({resolve(STATE_TOPIC)})]
-    span = (times[-1] - times[0]) * 1e-9
-    print(f'lockstep over DDS ({args.law}{", " if args.set else ""}{" ".join(args.set)}): '
-          f'{len(times) - 1} steps in {span:.2f} s = '
-          f'{(len(times) - 1) / span:,.0f} steps/s '
-          f'({span / (len(times) - 1) * 1e3:.2f} ms per state -> command -> state round trip)')
+    runs = [(args.law, settings, ' '.join(args.set))]
+    if not args.no_baseline and args.law != TRANSPORT[0]:
+        runs.append(TRANSPORT)
+    rates = []
+    for law, law_settings, shown in runs:
+        steps, span = lockstep(law, law_settings, args.steps)
+        rates.append(steps / span)
+        say(f'lockstep over DDS ({law}{", " if shown else ""}{shown}): '
+            f'{steps} steps in {span:.2f} s = {steps / span:,.0f} steps/s '
+            f'({span / steps * 1e3:.2f} ms per state -> command -> state round trip)')
+    if len(rates) > 1:
+        say(f'ratio {args.law} / the transport alone: {rates[0] / rates[1]:.2f}')
+    say.publish()
 
 
 if __name__ == '__main__':

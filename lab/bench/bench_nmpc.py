@@ -7,9 +7,11 @@
 `--model` (repeatable) runs koopman_nmpc once per model, each beside its own yardstick, in
 the same run (the --set settings apply to every one).
 
-Runs each law as deployed (`make_controller`: the offset-free observer unless --bare) on the
-nominal plant from a start (default the paper's), times every call of each part of the step
-and prints, per step, the median and p99 (the first step, the cold start, left out):
+Runs each law with its offset-free observer as deployed (unless --bare), without the runtime
+assurance supervisor around it (what the supervisor adds, the fallback's observer, shows in
+bench_compute.py --offset-free and the lockstep loop), on the nominal plant from a start
+(default the paper's), times every call of each part of the step and prints, per step, the
+median and p99 (the first step, the cold start, left out):
 
 - shift:     the previous plan's nodes advanced one sample (one batched map call, N + 1 rows);
 - intervals: every interval simulated from its node in one batch with its sensitivities
@@ -33,20 +35,23 @@ import time
 
 import numpy as np
 
-from tsr_koopman_ctrl.control import closed_loop, make_controller, nmpc
+from tsr_koopman_ctrl.control import closed_loop, nmpc
+from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
+from tsr_koopman_ctrl.control.registry import law_class
 from tsr_koopman_ctrl.control.settings import parse_assignments
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS
 
 # Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.printed import add_options, Printed  # noqa: E402
 from lab.bench.yardstick import seconds as yardstick  # noqa: E402
 
 PARTS = ('shift', 'intervals', 'condense', 'QP')
 
 
-def instrument(law, spent):
-    """Wrap the parts so each adds its time to the current step's entry of `spent`."""
-    core = getattr(law, 'law', law)
+def instrument(law, core, spent):
+    """Wrap the parts of the NMPC `core` (`law`, or inside it) so each adds its time to the
+    current step's entry of `spent`."""
     inside = []     # map.step inside map.interval is the intervals' time, not the shift's
 
     def timed(name, function):
@@ -70,7 +75,6 @@ def instrument(law, spent):
         spent.append(dict.fromkeys(PARTS + ('step',), 0.0))
         return compute(x)
     law.compute = step
-    return core
 
 
 def timed_call(function, repeats=50):
@@ -91,7 +95,9 @@ def main(argv=None):
     parser.add_argument('--bare', action='store_true', help='no offset-free observer')
     parser.add_argument('--model', action='append', default=[],
                         help='koopman_nmpc on this model (repeatable: one run each)')
+    add_options(parser)
     args = parser.parse_args(argv)
+    say = Printed(parser, args)
     start = (COMPARISON_STARTS + HELD_OUT_STARTS)[args.start]
     overrides = {law: {} for law in args.law}
     for law, values in parse_assignments(args.set).items():   # deploy's --set, parsed alike
@@ -110,9 +116,9 @@ def main(argv=None):
                 spent[-1]['condense'] += time.perf_counter() - begin
     nmpc.condense = timed_condense
 
-    print(f'start {list(start)}, {args.steps} steps on the nominal plant, '
-          f'{"bare" if args.bare else "offset-free (default observer)"}; per step, '
-          'the first (cold) step left out')
+    say(f'start {list(start)}, {args.steps} steps on the nominal plant, '
+        f'{"bare" if args.bare else "offset-free (default observer)"}; per step, '
+        'the first (cold) step left out')
     runs = [(law_name, {}) for law_name in args.law]
     if args.model:
         runs = [run for law_name in args.law for run in (
@@ -120,10 +126,10 @@ def main(argv=None):
             if law_name == 'koopman_nmpc' else [(law_name, {})])]
     for law_name, model in runs:
         before = yardstick()
-        law = make_controller(law_name, observer={'disturbance': 'none'} if args.bare
-                              else None, **{**overrides[law_name], **model})
+        core = law_class(law_name)(None, **{**overrides[law_name], **model})
+        law = core if args.bare else OffsetFree(core, ObserverSettings())
         spent.clear()
-        core = instrument(law, spent)
+        instrument(law, core, spent)
         closed_loop(law, start, args.steps)
         after = yardstick()
         yard = 0.5 * (before + after)
@@ -133,15 +139,15 @@ def main(argv=None):
         settings = core.settings
         extra = (f", sensitivities {settings.sensitivities}, {settings.precision}, model "
                  f"{settings.model}" if law_name == 'koopman_nmpc' else '')
-        print(f'\n{law_name} ({len(core.durations)} intervals, {core.counts.sum()} samples'
-              f'{extra}); yardstick {yard * 1e3:.3f} ms (before {before * 1e3:.3f}, after '
-              f'{after * 1e3:.3f}); fallbacks {law.fallbacks}')
-        print(f'{"part":<12}{"median ms":>10}{"p99 ms":>10}{"x yard":>8}{"p99 x yard":>12}')
+        say(f'\n{law_name} ({len(core.durations)} intervals, {core.counts.sum()} samples'
+            f'{extra}); yardstick {yard * 1e3:.3f} ms (before {before * 1e3:.3f}, after '
+            f'{after * 1e3:.3f}); fallbacks {law.fallbacks}')
+        say(f'{"part":<12}{"median ms":>10}{"p99 ms":>10}{"x yard":>8}{"p99 x yard":>12}')
         for name in PARTS + ('other', 'step'):
             values = table[name] * 1e3
             median, p99 = np.median(values), np.percentile(values, 99)
-            print(f'{name:<12}{median:>10.3f}{p99:>10.3f}{median / yard / 1e3:>8.1f}'
-                  f'{p99 / yard / 1e3:>12.1f}')
+            say(f'{name:<12}{median:>10.3f}{p99:>10.3f}{median / yard / 1e3:>8.1f}'
+                f'{p99 / yard / 1e3:>12.1f}')
         # the map alone and the two kinds of sensitivities, on the last step's nodes
         the_map = core.map
         interval = type(the_map).interval.__get__(the_map)     # not the timed wrapper
@@ -149,11 +155,12 @@ def main(argv=None):
         simulate = timed_call(lambda: the_map.advance(nodes, plan, core.counts))
         exact = timed_call(lambda: interval(nodes, plan, core.counts, exact=True), 20)
         held = timed_call(lambda: interval(nodes, plan, core.counts, exact=False))
-        print(f'map alone (advance, no derivatives) {simulate * 1e3:.3f} ms '
-              f'(x{simulate / yard:.1f}); interval with exact sensitivities '
-              f'{exact * 1e3:.3f} ms (x{exact / yard:.1f}); with the held one-step Jacobian '
-              f'{held * 1e3:.3f} ms (x{held / yard:.1f})')
+        say(f'map alone (advance, no derivatives) {simulate * 1e3:.3f} ms '
+            f'(x{simulate / yard:.1f}); interval with exact sensitivities '
+            f'{exact * 1e3:.3f} ms (x{exact / yard:.1f}); with the held one-step Jacobian '
+            f'{held * 1e3:.3f} ms (x{held / yard:.1f})')
     nmpc.condense = condense
+    say.publish()
 
 
 if __name__ == '__main__':

@@ -11,6 +11,8 @@ against quadprog by tests/control/test_nmpc.py.
 """
 
 import argparse
+import os
+import sys
 import time
 
 import daqp
@@ -21,6 +23,10 @@ import scipy.sparse as sparse
 
 from tsr_koopman_ctrl.control import closed_loop, KoopmanMpc
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, PAPER_START
+
+# Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.printed import add_options, Printed  # noqa: E402
 
 
 def record(steps):
@@ -95,24 +101,27 @@ def active(problem, x, tol=1e-7):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--steps', type=int, help='closed-loop steps per start (default 600)')
+    add_options(parser)
     args = parser.parse_args()
+    say = Printed(parser, args)
     problems = record(args.steps or 600)
     reference = timed(solve_daqp, problems)
     solvers = {'daqp': solve_daqp, 'osqp (warm, one setup)': osqp_solver(problems[0]),
                'quadprog': solve_quadprog}
-    print(f'{len(problems)} QPs ({problems[0][0].shape[0]} variables, '
-          f'{problems[0][2].shape[0]} general rows); '
-          f"{sum(active(p, solve_quadprog(p)) for p in problems)} with an active bound")
-    print(f"{'solver':24s} {'median us':>10s} {'p99 us':>10s} {'not solved':>10s} "
-          f"{'max |v1 - daqp| (solved)':>25s}")
+    say(f'{len(problems)} QPs ({problems[0][0].shape[0]} variables, '
+        f'{problems[0][2].shape[0]} general rows); '
+        f"{sum(active(p, solve_quadprog(p)) for p in problems)} with an active bound")
+    say(f"{'solver':24s} {'median us':>10s} {'p99 us':>10s} {'not solved':>10s} "
+        f"{'max |v1 - daqp| (solved)':>25s}")
     results = {}
     for name, solve in solvers.items():
         median, p99, moves = timed(solve, problems) if name != 'daqp' else reference
         results[name] = median
         solved = np.isfinite(moves)
-        print(f'{name:24s} {median:10.1f} {p99:10.1f} {np.sum(~solved):10d} '
-              f'{np.max(np.abs(moves[solved] - reference[2][solved])):25.2e}')
-    print(f"osqp / daqp (median): {results['osqp (warm, one setup)'] / results['daqp']:.1f}x")
+        say(f'{name:24s} {median:10.1f} {p99:10.1f} {np.sum(~solved):10d} '
+            f'{np.max(np.abs(moves[solved] - reference[2][solved])):25.2e}')
+    say(f"osqp / daqp (median): {results['osqp (warm, one setup)'] / results['daqp']:.1f}x")
+    say.publish()
 
 
 if __name__ == '__main__':

@@ -26,6 +26,10 @@ from std_msgs.msg import UInt64
 from tsr_koopman_ctrl.bag import BagReader
 from tsr_koopman_ctrl.launcher import NodeProcess, reserve_domain
 
+# Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.printed import add_options, Printed  # noqa: E402
+
 TOPIC = '/bench/counter'
 # Deep reliable history: a KEEP_ALL writer errors out once its queue is full on a burst.
 BURST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100_000,
@@ -89,7 +93,9 @@ def main():
     parser.add_argument('--messages', type=int, default=100_000)
     parser.add_argument('--kill-rate', type=int, default=2000, help='msg/s of the killed stream')
     parser.add_argument('--kills', type=int, default=3)
+    add_options(parser)
     args = parser.parse_args()
+    say = Printed(parser, args)
     n = args.messages
     reservation = reserve_domain()      # one no other process on the host uses, held to the end
     domain = reservation.id
@@ -116,15 +122,16 @@ def main():
     node.destroy_node()
     rclpy.shutdown(context=context)
     reservation.release()
-    print(f'recorder: {n} messages in {rec_s:.2f} s = {n / rec_s:,.0f} msg/s; stopped at once '
-          f'(exit {stopped}): in bag {len(got)} (lost {n - len(got)}, in order: '
-          f'{got == list(range(len(got)))})')
-    print(f'bare rclpy subscriber (EventsExecutor): {n / bare_s:,.0f} msg/s '
-          f'(received {bare_count})')
-    print(f'ratio recorder / bare subscriber: {bare_s / rec_s:.2f}')
+    say(f'recorder: {n} messages in {rec_s:.2f} s = {n / rec_s:,.0f} msg/s; stopped at once '
+        f'(exit {stopped}): in bag {len(got)} (lost {n - len(got)}, in order: '
+        f'{got == list(range(len(got)))})')
+    say(f'bare rclpy subscriber (EventsExecutor): {n / bare_s:,.0f} msg/s '
+        f'(received {bare_count})')
+    say(f'ratio recorder / bare subscriber: {bare_s / rec_s:.2f}')
     for lost_s, sent, kept, ordered in kills:
-        print(f'kill -9 during a {args.kill_rate} msg/s stream: {sent} sent, {kept} in the bag, '
-              f'lost {lost_s:.2f} s of stream (in order: {ordered})')
+        say(f'kill -9 during a {args.kill_rate} msg/s stream: {sent} sent, {kept} in the bag, '
+            f'lost {lost_s:.2f} s of stream (in order: {ordered})')
+    say.publish()
 
 
 if __name__ == '__main__':

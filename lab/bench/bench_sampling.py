@@ -7,11 +7,17 @@ hold intervals one after the other.
 """
 
 import argparse
+import os
+import sys
 import time
 
 import numpy as np
 from scipy.integrate import solve_ivp
 from tsr_sim import dynamics
+
+# Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.printed import add_options, Printed  # noqa: E402
 
 
 def sample(n, steps, seed=0):
@@ -32,7 +38,9 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--trajectories', type=int, default=40_000)
     parser.add_argument('--reference-trajectories', type=int, default=200)
+    add_options(parser)
     args = parser.parse_args()
+    say = Printed(parser, args)
     steps = 30
     x0, u = sample(args.trajectories, steps)
     start = time.perf_counter()
@@ -46,11 +54,12 @@ def main():
     solve_ivp_loop(x0[:n_ref], u[:n_ref])
     ref_s = time.perf_counter() - start
     ref_rate = n_ref * steps / ref_s
-    print(f'batch RK4:  {args.trajectories} x {steps} steps in {batch_s:.3f} s = '
-          f'{batch_rate:,.0f} state-steps/s ({kept} trajectories stay in the domain)')
-    print(f'solve_ivp:  {n_ref} x {steps} steps in {ref_s:.3f} s = {ref_rate:,.0f} '
-          f'state-steps/s')
-    print(f'ratio batch / solve_ivp loop: {batch_rate / ref_rate:,.0f}x')
+    say(f'batch RK4:  {args.trajectories} x {steps} steps in {batch_s:.3f} s = '
+        f'{batch_rate:,.0f} state-steps/s ({kept} trajectories stay in the domain)')
+    say(f'solve_ivp:  {n_ref} x {steps} steps in {ref_s:.3f} s = {ref_rate:,.0f} '
+        f'state-steps/s')
+    say(f'ratio batch / solve_ivp loop: {batch_rate / ref_rate:,.0f}x')
+    say.publish()
 
 
 if __name__ == '__main__':

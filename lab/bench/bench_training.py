@@ -7,6 +7,8 @@ estimated as (epochs the shipped model needed to reach its best) x (measured epo
 """
 
 import argparse
+import os
+import sys
 import time
 
 import torch
@@ -15,12 +17,18 @@ from tsr_koopman_ctrl.learning import dataset as datasets
 from tsr_koopman_ctrl.learning import deep_koopman
 from tsr_koopman_ctrl.model import DEFAULT_MODEL, model_file, resolve
 
+# Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.printed import add_options, Printed  # noqa: E402
+
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--model', default=DEFAULT_MODEL)
     parser.add_argument('--batches', type=int, default=30)
+    add_options(parser)
     args = parser.parse_args()
+    say = Printed(parser, args)
     _, model_config, meta = model_file.load(resolve(args.model))
     config = model_file.KoopmanConfig.of(model_config, meta)
     training = config.training
@@ -47,15 +55,16 @@ def main():
     trained = meta['data']['train_trajectories'] * (1 - training.validation_fraction)
     epoch_s = trained / rate
     best_epoch = meta['metrics']['validation_best']['epoch']
-    print(f'threads {torch.get_num_threads()}, batch {training.batch_size}, '
-          f'K {model_config.lift_dim}')
-    print(f'training throughput: {rate:,.0f} trajectories/s ({rate * 30:,.0f} state-steps/s)')
-    print(f'epoch of {trained:,.0f} trajectories: {epoch_s:.1f} s')
-    print(f"time to the shipped model's validation error (best at epoch {best_epoch}): "
-          f'~{best_epoch * epoch_s / 60:.1f} min (recorded while training: '
-          f"{meta['training_seconds'] / 60:.1f} min for {training.epochs} epochs)")
+    say(f'threads {torch.get_num_threads()}, batch {training.batch_size}, '
+        f'K {model_config.lift_dim}')
+    say(f'training throughput: {rate:,.0f} trajectories/s ({rate * 30:,.0f} state-steps/s)')
+    say(f'epoch of {trained:,.0f} trajectories: {epoch_s:.1f} s')
+    say(f"time to the shipped model's validation error (best at epoch {best_epoch}): "
+        f'~{best_epoch * epoch_s / 60:.1f} min (recorded while training: '
+        f"{meta['training_seconds'] / 60:.1f} min for {training.epochs} epochs)")
     if 'training_note' in meta:   # e.g. trained partly elsewhere and resumed here
-        print(f"note on the recorded time: {meta['training_note']}")
+        say(f"note on the recorded time: {meta['training_note']}")
+    say.publish()
 
 
 if __name__ == '__main__':

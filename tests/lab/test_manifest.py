@@ -174,4 +174,6 @@ def test_the_pages_generated_by_their_studies(monkeypatch):
                          'prediction_main_job', 'prediction_momentum', 'nmpc_nominal',
                          'nmpc_swing0.4', 'nmpc_robustness', 'data_loop_actuator_weak',
                          'data_loop_actuator_strong', 'data_loop_heavy_robot',
-                         'data_loop_eccentric_orbit'}
+                         'data_loop_eccentric_orbit', 'bench_recorder', 'bench_lockstep',
+                         'bench_compute', 'bench_compute_offset_free', 'bench_qp',
+                         'bench_nmpc', 'bench_sampling', 'bench_training', 'bench_inference'}
