@@ -9,9 +9,7 @@ import argparse
 import sys
 
 from tsr_koopman_ctrl.control import CONTROLLERS
-from tsr_koopman_ctrl.control.registry import DEFAULT_LAW
-from tsr_koopman_ctrl.control.excitation import ExcitationSettings
-from tsr_koopman_ctrl.control.offset_free import ObserverSettings
+from tsr_koopman_ctrl.control.registry import DEFAULT_LAW, NODE_SECTIONS
 from tsr_koopman_ctrl.control.settings import fields
 
 HEADER = """\
@@ -19,7 +17,9 @@ HEADER = """\
 # `ros2 run tsr_koopman_ctrl config` from the laws' settings classes: do not edit by hand.
 #   ros2 run tsr_koopman_ctrl controller_node --ros-args --params-file controller.yaml
 # Keyed /**/tsr_controller: it applies to the node under any namespace. The node declares every
-# law's settings, the observer's (offset-free control) and the excitation's; `law` picks the law.
+# law's settings and those of the sections around any law: observer (offset-free control, on by
+# default), excitation (off by default), supervisor (runtime assurance of a learned law, on by
+# default); `law` picks the law.
 """
 
 
@@ -37,8 +37,7 @@ def example_yaml(node_name='/**/tsr_controller', default_law=DEFAULT_LAW):
              '    autostart: true           # configure and activate at start',
              '    state_timeout: 5.0        # s without a state -> safe_tension']
     sections = {law: CONTROLLERS[law].Settings for law in sorted(CONTROLLERS)}
-    sections['observer'] = ObserverSettings       # offset-free control of any law; on by default
-    sections['excitation'] = ExcitationSettings   # added to any law's tension; off by default
+    sections.update(NODE_SECTIONS)
     for law, settings in sections.items():
         lines.append(f'    {law}:')
         for name, default, meta in fields(settings):

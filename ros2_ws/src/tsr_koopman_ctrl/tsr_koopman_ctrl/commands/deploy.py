@@ -38,8 +38,9 @@ def parse_args(argv):
                         '--set applies on top')
     parser.add_argument('--set', action='append', default=[], metavar='SECTION.SETTING=VALUE',
                         help='a setting of the law (koopman_mpc.horizon=8), the observer '
-                        '(observer.disturbance=none: the bare law) or the excitation '
-                        '(excitation.kind=prbs); repeatable; sequences as a,b,c')
+                        '(observer.disturbance=none: the bare law), the excitation '
+                        '(excitation.kind=prbs) or the supervisor (supervisor.fallback=none: '
+                        'the learned law unwatched); repeatable; sequences as a,b,c')
     parser.add_argument('--plant', default='nominal',
                         help='plant variant: a name under tsr_sim/config/plants (actuator_weak, '
                         'actuator_strong, heavy_robot, out_of_plane, eccentric_orbit, '
