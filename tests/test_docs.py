@@ -80,3 +80,16 @@ def test_every_figure_the_readme_s_results_quote_is_in_a_page_they_link(
     shown = ' '.join(page.read_text() for page in pages)
     missing = [figure for figure in FIGURE.findall(answer) if figure not in shown]
     assert not missing, f'README, {question!r}: {missing} in none of {[p.name for p in pages]}'
+
+
+def test_the_frontier_page_s_example_is_the_comparison_s_first_row():
+    """frontier.md explains the ratio with the comparison's figures from the paper's start:
+    each one it quotes is in comparison.md's table row for that start."""
+    text = (ROOT / 'docs' / 'frontier.md').read_text()
+    example = ' '.join(text.split('Example from the project', 1)[1].split('[P]', 1)[0].split())
+    row = next(line for line in (ROOT / 'docs' / 'comparison.md').read_text().splitlines()
+               if line.startswith('| [0.0, 0.0, -0.99, 0.5] |'))
+    quoted = FIGURE.findall(example.split('u in [0, 5]):', 1)[1])
+    frontier = quoted.pop(2)       # the koopman_mpc frontier: its settle time over its ratio
+    assert float(frontier) == pytest.approx(float(quoted[0]) / float(quoted[2]), abs=0.05)
+    assert len(quoted) == 9 and all(figure in row for figure in quoted), (quoted, row)
