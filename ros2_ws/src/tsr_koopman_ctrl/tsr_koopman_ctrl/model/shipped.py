@@ -10,7 +10,8 @@ import os
 from tsr_sim.share import NOT_SOURCED, share_directory
 
 PACKAGE = 'tsr_koopman_ctrl'
-#: The model the controller uses unless told otherwise (models/README.md says how it was trained).
+#: The paper's model with its errors fixed: what the prediction studies and the benchmarks load
+#: unless told otherwise. Each law names its own model in its settings (models/README.md).
 DEFAULT_MODEL = 'koopman_default'
 
 
