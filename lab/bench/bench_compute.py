@@ -5,8 +5,9 @@ start for `--steps` steps, and every compute(x) call is timed there: an optimisi
 depends on its own trajectory and warm starts, so states replayed from another law's loop would
 not measure it. Figures (microseconds): median, p99 and max per step, the median as a fraction
 of the control period h = 0.01 tau (8.47 s of flight at the paper's orbit rate) and as a
-multiple of linear_lqr's. The bare laws by default; --offset-free wraps each in the
-disturbance observer, as the controller node builds them. The laws' defaults, or a settings
+multiple of linear_lqr's. The bare laws by default (no observer, no supervisor);
+--offset-free builds each as the controller node does: in the disturbance observer, a learned
+law under its runtime-assurance supervisor beside its fallback. The laws' defaults, or a settings
 preset (--preset tuned_settle: koopman_mpc plans 3 steps there, against 30 by default). The
 first build of a law (a model loaded, a CasADi function made) is not
 timed.
@@ -35,7 +36,8 @@ def main():
     parser.add_argument('--steps', type=int, default=500)
     parser.add_argument('--law', nargs='+', default=list(CONTROLLERS), choices=list(CONTROLLERS))
     parser.add_argument('--offset-free', action='store_true',
-                        help='wrap each law in the disturbance observer (the node default)')
+                        help='each law as the node builds it: in the disturbance observer, a '
+                        'learned law under its supervisor')
     parser.add_argument('--preset', help="settings preset, by path or by name under config/ "
                         "('untuned', 'tuned_settle', 'tuned_cross'; default: the laws' defaults)")
     add_options(parser)
@@ -45,19 +47,21 @@ def main():
         settings = preset(args.preset) if args.preset else {}
     except ValueError as error:
         parser.error(str(error))
-    observer = None if args.offset_free else ObserverSettings(disturbance='none')
+    wrappers = ({} if args.offset_free else
+                {'observer': ObserverSettings(disturbance='none'), 'supervisor': 'none'})
     h = dynamics.PAPER_STEP
     period_us = Scale().tau_to_seconds(h) * 1e6   # of flight, at the paper's orbit rate
     rows = []
     for name in args.law:
-        law, seconds = make_controller(name, observer=observer, **settings.get(name, {})), []
+        law, seconds = make_controller(name, **wrappers, **settings.get(name, {})), []
         closed_loop(law, PAPER_START, args.steps, compute_seconds=seconds)
         times = np.array(seconds) * 1e6
         rows.append((name, np.median(times), np.percentile(times, 99), times.max(),
                      law.fallbacks))
     base = next((r[1] for r in rows if r[0] == 'linear_lqr'), None)
-    kind = 'offset-free' if args.offset_free else 'bare'
-    say(f"{args.steps} steps from the paper start, {kind} laws, "
+    kind = ('laws as deployed (offset-free, learned laws supervised)' if args.offset_free
+            else 'bare laws')
+    say(f"{args.steps} steps from the paper start, {kind}, "
         f"{args.preset or 'default'} settings; h = {h} tau = "
         f'{period_us / 1e6:.2f} s')
     say(f"{'law':16s} {'median us':>10s} {'p99 us':>10s} {'max us':>10s} "

@@ -8,7 +8,7 @@
 the same run (the --set settings apply to every one).
 
 Runs each law with its offset-free observer as deployed (unless --bare), without the runtime
-assurance supervisor around it (what the supervisor adds, the fallback's observer, shows in
+assurance supervisor around it (the law as deployed, supervisor included:
 bench_compute.py --offset-free and the lockstep loop), on the nominal plant from a start
 (default the paper's), times every call of each part of the step and prints, per step, the
 median and p99 (the first step, the cold start, left out):
@@ -35,9 +35,8 @@ import time
 
 import numpy as np
 
-from tsr_koopman_ctrl.control import closed_loop, nmpc
-from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
-from tsr_koopman_ctrl.control.registry import law_class
+from tsr_koopman_ctrl.control import closed_loop, make_controller, nmpc
+from tsr_koopman_ctrl.control.offset_free import OffsetFree
 from tsr_koopman_ctrl.control.settings import parse_assignments
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS
 
@@ -126,8 +125,9 @@ def main(argv=None):
             if law_name == 'koopman_nmpc' else [(law_name, {})])]
     for law_name, model in runs:
         before = yardstick()
-        core = law_class(law_name)(None, **{**overrides[law_name], **model})
-        law = core if args.bare else OffsetFree(core, ObserverSettings())
+        law = make_controller(law_name, observer='none' if args.bare else None,
+                              supervisor='none', **{**overrides[law_name], **model})
+        core = law.law if isinstance(law, OffsetFree) else law
         spent.clear()
         instrument(law, core, spent)
         closed_loop(law, start, args.steps)

@@ -1,7 +1,8 @@
 """Deep Koopman training throughput on this machine, and the time to the shipped model's error.
 
 Figures: trajectories (30-step samples) per second through forward + backward + Adam step at
-the shipped model's config and batch size, with all of torch's CPU threads; the time per epoch
+the shipped model's config and batch size, with all of torch's CPU threads, and the ratio to
+one thread measured in the same run (what the machine's other cores buy); the time per epoch
 of 4e4 trajectories that implies; and the time to reach the shipped model's validation error,
 estimated as (epochs the shipped model needed to reach its best) x (measured epoch time).
 """
@@ -45,19 +46,26 @@ def main():
         loss.backward()
         optimiser.step()
 
-    for i in range(3):
-        step(i)   # warm-up
-    start = time.perf_counter()
-    for i in range(args.batches):
-        step(i)
-    seconds = time.perf_counter() - start
-    rate = args.batches * training.batch_size / seconds
+    def throughput(threads):
+        """Trajectories per second with `threads` torch CPU threads."""
+        torch.set_num_threads(threads)
+        for i in range(3):
+            step(i)   # warm-up
+        start = time.perf_counter()
+        for i in range(args.batches):
+            step(i)
+        return args.batches * training.batch_size / (time.perf_counter() - start)
+
+    threads = torch.get_num_threads()
+    single = throughput(1)
+    rate = throughput(threads)
     trained = meta['data']['train_trajectories'] * (1 - training.validation_fraction)
     epoch_s = trained / rate
     best_epoch = meta['metrics']['validation_best']['epoch']
-    say(f'threads {torch.get_num_threads()}, batch {training.batch_size}, '
-        f'K {model_config.lift_dim}')
+    say(f'threads {threads}, batch {training.batch_size}, K {model_config.lift_dim}')
     say(f'training throughput: {rate:,.0f} trajectories/s ({rate * 30:,.0f} state-steps/s)')
+    say(f'one thread: {single:,.0f} trajectories/s; ratio {threads} threads / one: '
+        f'{rate / single:.2f}')
     say(f'epoch of {trained:,.0f} trajectories: {epoch_s:.1f} s')
     say(f"time to the shipped model's validation error (best at epoch {best_epoch}): "
         f'~{best_epoch * epoch_s / 60:.1f} min (recorded while training: '

@@ -35,6 +35,7 @@ from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, frontier_tau, HELD_O
 
 # Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+from lab.bench.printed import marker  # noqa: E402
 from lab.bench.yardstick import seconds as yardstick  # noqa: E402
 from lab.compare import HELD_TOLERANCE  # noqa: E402
 from lab.report import check_page, stamp, write_into_page  # noqa: E402
@@ -182,11 +183,6 @@ def page_text(suite, rows, laws, steps, bare, supervised, gains):
     if suite == 'swing0.4':
         return '\n'.join(head + swing_tables(rows, laws)) + '\n'
     return '\n'.join(head + robustness_tables(rows, laws, gains)) + '\n'
-
-
-def marker(out):
-    """The page markers a run writes between: its --out file's name without the suffix."""
-    return os.path.splitext(os.path.basename(out))[0]
 
 
 def main(argv=None):

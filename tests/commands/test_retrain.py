@@ -359,7 +359,11 @@ def test_a_fine_tune_may_change_the_training_but_not_the_model(init_model, tmp_p
     config, init, _, init_model_config, _, _ = retraining.configure(options, tmp_path / 'm')
     assert config.training.weight_physical == 0.5 and config.training.gamma == 0.99
     assert config.model == init_model_config and init['fine_tuned']
-    with pytest.raises(retraining.UsageError, match='another momentum_power'):
+    with pytest.raises(retraining.UsageError, match='another momentum_power .* --from-scratch'):
         retraining.configure(retraining.RetrainOptions(init=str(init_model),
                                                        config={'momentum_power': 1.0}),
+                             tmp_path / 'm')
+    with pytest.raises(retraining.UsageError, match='another anchor_tension .* use --anchor$'):
+        retraining.configure(retraining.RetrainOptions(init=str(init_model),
+                                                       config={'anchor_tension': 3.3}),
                              tmp_path / 'm')

@@ -130,7 +130,7 @@ def test_the_command_parses_and_writes_its_output_where_the_manifest_says(entry,
     elif entry['study'].startswith('lab.'):
         assert os.path.dirname(output) == args.out, (output, args.out)
     else:
-        assert output.startswith(RESULTS + 'bench/'), output
+        assert output.startswith(RESULTS + 'bench/') and output == args.out, (output, args.out)
 
 
 def page_option(entry, monkeypatch):
@@ -142,9 +142,10 @@ def page_option(entry, monkeypatch):
 def markers(entry, args):
     """The markers a command writes between: named after its --out folder (a study) or its
     --out file's name without the suffix (a benchmark)."""
+    from lab.bench.printed import marker
     from lab.report import marker_name
     if not entry['study'].startswith('lab.'):
-        return os.path.splitext(os.path.basename(args.out))[0]
+        return marker(args.out)
     study = importlib.import_module(entry['study'])
     return study.markers(args) if hasattr(study, 'markers') else marker_name(args.out)
 

@@ -62,27 +62,51 @@ def test_bad_model_files_give_one_clear_line(tiny_model, tmp_path, damage, messa
 
 
 def test_the_model_file_keeps_the_model_apart_from_its_training(tiny_model, tmp_path):
-    """`config` holds what the model is and `training` how it was trained; a file of the
-    earlier layout, both in `config`, reads the same."""
+    """`config` holds what the model is and `training` how it was trained; a file in the flat
+    layout (both in `config`) reads the same, and load gives one layout either way."""
     import json
     tensors, config, meta = model_file.load(tiny_model[0])
     written = json.loads((tiny_model[0] / model_file.META_FILE).read_text())
     assert set(written['config']) == set(model_file.ModelConfig.__dataclass_fields__)
     assert set(written['training']) == set(model_file.TrainingConfig.__dataclass_fields__)
+    assert not set(written['config']) & set(written['training'])
     assert written['training']['epochs'] == 4 and written['config']['lift_dim'] == 4
     assert isinstance(config, model_file.ModelConfig) and not hasattr(config, 'epochs')
-    earlier = dict(written, config={**written['config'], **written['training'],
-                                    'scale_free_lifted_loss': False})   # retired, off
-    del earlier['training']
-    old = tmp_path / 'old'
-    model_file.save(old, tensors, config, {})
-    (old / model_file.META_FILE).write_text(json.dumps(earlier))
-    tensors_old, config_old, meta_old = model_file.load(old)
-    assert config_old == config and meta_old['training'] == meta['training']
-    recipe = model_file.KoopmanConfig.of(config_old, meta_old)
+    flat = dict(written, config={**written['config'], **written['training'],
+                                 'scale_free_lifted_loss': False})   # retired, off
+    del flat['training']
+    path = tmp_path / 'flat'
+    model_file.save(path, tensors, config, {})
+    (path / model_file.META_FILE).write_text(json.dumps(flat))
+    _, config_flat, meta_flat = model_file.load(path)
+    assert config_flat == config and meta_flat['training'] == meta['training']
+    assert meta_flat['config'] == meta['config'] == dataclasses.asdict(config)
+    recipe = model_file.KoopmanConfig.of(config_flat, meta_flat)
     assert recipe.training.learning_rate == 3e-3 and recipe.model.hidden == 16
     with pytest.raises(ValueError, match='nosuchfield'):
         recipe.replace(nosuchfield=1)
+
+
+@pytest.mark.parametrize('config, training, read', [
+    ({'lift_dim': 4, 'epochs': 9}, {'learning_rate': 0.5}, {'epochs': 9, 'learning_rate': 0.5}),
+    ({'lift_dim': 4, 'epochs': 9}, {'epochs': 9}, {'epochs': 9}),
+    ({'lift_dim': 4, 'epochs': 9}, {'epochs': 3}, "give ['epochs'] two values"),
+    ({'lift_dim': 4}, {'momentum_power': 1.0}, "training keys ['momentum_power'] are no"),
+    ({'lift_dim': 4}, {'scale_free_lifted_loss': False}, {}),
+])
+def test_a_model_file_s_training_fields_come_from_wherever_it_gives_them(config, training,
+                                                                         read):
+    """Training fields split between `config` and `training` are all read; a field given
+    twice with two values, or a model field in `training` (which would change the model
+    unseen: no tensor shape depends on momentum_power), is refused."""
+    if isinstance(read, str):
+        with pytest.raises(ValueError) as error:
+            model_file.split_config(config, training)
+        assert read in str(error.value)
+        return
+    model, fields = model_file.split_config(config, training)
+    assert model == model_file.ModelConfig(lift_dim=4)
+    assert fields == {**dataclasses.asdict(model_file.TrainingConfig()), **read}
 
 
 @pytest.mark.parametrize('name', ['koopman_default', 'koopman_paper', 'koopman_block',

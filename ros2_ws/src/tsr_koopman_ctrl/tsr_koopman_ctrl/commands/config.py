@@ -9,7 +9,7 @@ import argparse
 import sys
 
 from tsr_koopman_ctrl.control import CONTROLLERS
-from tsr_koopman_ctrl.control.registry import DEFAULT_LAW, NODE_SECTIONS
+from tsr_koopman_ctrl.control.registry import DEFAULT_LAW, settings_sections
 from tsr_koopman_ctrl.control.settings import fields
 
 HEADER = """\
@@ -17,9 +17,9 @@ HEADER = """\
 # `ros2 run tsr_koopman_ctrl config` from the laws' settings classes: do not edit by hand.
 #   ros2 run tsr_koopman_ctrl controller_node --ros-args --params-file controller.yaml
 # Keyed /**/tsr_controller: it applies to the node under any namespace. The node declares every
-# law's settings and those of the sections around any law: observer (offset-free control, on by
-# default), excitation (off by default), supervisor (runtime assurance of a learned law, on by
-# default); `law` picks the law.
+# law's settings and those of the sections around any law (observer: offset-free control;
+# excitation: added to the tension; supervisor: runtime assurance of a learned law); `law` picks
+# the law.
 """
 
 
@@ -36,11 +36,11 @@ def example_yaml(node_name='/**/tsr_controller', default_law=DEFAULT_LAW):
              f'    law: {default_law}   # one of {", ".join(sorted(CONTROLLERS))}',
              '    autostart: true           # configure and activate at start',
              '    state_timeout: 5.0        # s without a state -> safe_tension']
-    sections = {law: CONTROLLERS[law].Settings for law in sorted(CONTROLLERS)}
-    sections.update(NODE_SECTIONS)
-    for law, settings in sections.items():
-        lines.append(f'    {law}:')
-        for name, default, meta in fields(settings):
+    sections = settings_sections()
+    # the laws in name order, then the sections around them
+    for section in sorted(CONTROLLERS) + [s for s in sections if s not in CONTROLLERS]:
+        lines.append(f'    {section}:')
+        for name, default, meta in fields(sections[section]):
             value = (f'[{", ".join(scalar(v) for v in default)}]'
                      if isinstance(default, tuple) else scalar(default))
             lines += [f'      # {meta["description"]}', f'      {name}: {value}']

@@ -145,11 +145,11 @@ def main(argv=None):
         if args.resume and not os.path.exists(os.path.join(args.out, CHECKPOINT)):
             # Said before the data is sampled (a minute), as Trainer.restore would after.
             raise ValueError(f'cannot resume: no {os.path.join(args.out, CHECKPOINT)}')
-        training = load_data(args)
+        train_data = load_data(args)
         test_data = data.test_set(args.test_trajectories, args.test_seed)
         trainer = Trainer(config, args.out, args.device, progress=not args.quiet, kind=kind)
         start = time.perf_counter()
-        model = trainer.fit(training, resume=args.resume, init=init)
+        model = trainer.fit(train_data, resume=args.resume, init=init)
         seconds = time.perf_counter() - start
     except ValueError as error:
         print(f'train: {error}', file=sys.stderr)
@@ -163,8 +163,8 @@ def main(argv=None):
     extra = {}
     if args.init:
         extra['init'] = args.init
-    metadata = save_model(args.out, model, config, trainer, training, test_data, seconds,
-                          command, extra, envelope=datasets.envelope(training))
+    metadata = save_model(args.out, model, config, trainer, train_data, test_data, seconds,
+                          command, extra, envelope=datasets.envelope(train_data))
     metrics = metadata['metrics']
     print(f"saved {args.out}: best epoch {trainer.best['epoch']}, test 30-step summed MSE "
           f"{metrics['test']['summed_mse']:.4g}, controllability rank "

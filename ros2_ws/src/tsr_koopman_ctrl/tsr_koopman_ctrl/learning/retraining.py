@@ -128,8 +128,9 @@ def checked_overrides(values):
 def configure(options, out):
     """(config, init record or None, init tensors or None, init model config, model kind,
     init envelope or None): the model to train and where from. A fine-tuned model keeps its
-    kind (`kinds.from_metadata`), its ModelConfig (what the network is and computes) and the
-    envelope it was trained in; from scratch it is dense."""
+    kind (`kinds.from_metadata`), its ModelConfig (what the network is and computes) but for
+    the anchor, which `anchored` sets (retrain's --anchor), and the envelope it was trained in;
+    from scratch it is dense."""
     args = options
     init, tensors, base, model_kind = None, None, model_file.KoopmanConfig(), kinds.Dense()
     envelope = None
@@ -154,12 +155,13 @@ def configure(options, out):
     values = base.as_dict()
     overrides = checked_overrides(dict(args.config))
     if fine_tune:
-        model = dataclasses.asdict(base.model)
-        fixed = sorted(k for k in overrides if k in model and overrides[k] != (
-            list(model[k]) if isinstance(model[k], tuple) else model[k]))
+        model_fields = dataclasses.asdict(base.model)
+        fixed = sorted(k for k in overrides if k in model_fields and overrides[k] != (
+            list(model_fields[k]) if isinstance(model_fields[k], tuple) else model_fields[k]))
         if fixed:
+            instead = ('--anchor' if fixed == ['anchor_tension'] else '--from-scratch')
             raise UsageError(f'cannot fine-tune with another {", ".join(fixed)} than the init '
-                             'model: use --from-scratch')
+                             f'model: use {instead}')
         values['epochs'] = FINE_TUNE_EPOCHS
         values['learning_rate'] = (base.training.learning_rate
                                    * FINE_TUNE_LEARNING_RATE_FACTOR)

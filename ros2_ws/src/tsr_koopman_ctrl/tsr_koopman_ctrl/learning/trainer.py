@@ -88,23 +88,23 @@ class Trainer:
         normalised on the training states. `validation`: the windows the best epoch is chosen
         on, instead of a `validation_fraction` split of `data`. Under DDP `data` and
         `validation` are this rank's shard."""
-        config, context = self.config.training, self.context
-        torch.manual_seed(config.seed)
+        training, context = self.config.training, self.context
+        torch.manual_seed(training.seed)
         if validation is None:
-            train, val = data.split(1.0 - config.validation_fraction, seed=config.seed)
+            train, val = data.split(1.0 - training.validation_fraction, seed=training.seed)
         else:
             train, val = data, validation
-        context.check(train, val, config.batch_size)
-        per_rank = config.batch_size // context.world_size
+        context.check(train, val, training.batch_size)
+        per_rank = training.batch_size // context.world_size
         # An init keeps its own normalisation; a new model is normalised on the training states.
         mean, std = (None, None) if init is not None else self.normalisation(train)
         model = self.kind.build(self.config.model, init, mean, std)
         model.to(self.device)
-        objective = context.objective(model, self.device, config)
-        optimiser = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
+        objective = context.objective(model, self.device, training)
+        optimiser = torch.optim.Adam(model.parameters(), lr=training.learning_rate)
         batches = context.batches(len(train) // per_rank)
         scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
-            optimiser, T_max=config.epochs * batches, eta_min=config.final_learning_rate)
+            optimiser, T_max=training.epochs * batches, eta_min=training.final_learning_rate)
         start_epoch, self.best = 0, {'summed_mse': np.inf}
         self.best_tensors = model.to_numpy()
         if init is not None:
@@ -119,11 +119,11 @@ class Trainer:
             start_epoch = self.restore(model, optimiser, scheduler, batches)
         x, u = to_tensors(train, self.device)
         generator = torch.Generator().manual_seed(
-            config.seed + start_epoch + RANK_SEED_STRIDE * context.rank)
-        for epoch in range(start_epoch, config.epochs):
+            training.seed + start_epoch + RANK_SEED_STRIDE * context.rank)
+        for epoch in range(start_epoch, training.epochs):
             order = (torch.randperm(len(x), generator=generator) if self.shuffle
                      else torch.arange(len(x)))
-            bar = tqdm(range(batches), desc=f'epoch {epoch + 1}/{config.epochs}',
+            bar = tqdm(range(batches), desc=f'epoch {epoch + 1}/{training.epochs}',
                        disable=not self.progress, leave=False, file=sys.stdout)
             sums = {}
             for b in bar:
@@ -217,10 +217,9 @@ def versions():
 def save_model(out_dir, model, config, trainer, train_data, test_data, seconds, command,
                extra=None, envelope=None):
     """Write the model (`config`: its KoopmanConfig) with its test metrics, controllability
-    rank and provenance; `extra`:
-    more metadata (a dict merged in); `envelope`: the box of its training states
-    (`dataset.envelope`), which the supervisor checks states against. `train_data` needs only
-    `provenance` and len()."""
+    rank and provenance; `extra`: more metadata (a dict merged in); `envelope`: the box of its
+    training states (`dataset.envelope`), which the supervisor checks states against.
+    `train_data` needs only `provenance` and len()."""
     test = evaluate(model, test_data, trainer.device)
     tensors = trainer.kind.tensors(model)
     metadata = {

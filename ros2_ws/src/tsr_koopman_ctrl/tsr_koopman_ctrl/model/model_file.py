@@ -117,7 +117,7 @@ class ModelConfig:
 @dataclasses.dataclass(frozen=True)
 class TrainingConfig:
     """How a model was trained: its loss and its optimisation; saved with the model as
-    `training`, read again only by a fine-tune or a resumed run."""
+    `training` (a fine-tune starts from it; evaluating the model never needs it)."""
 
     # Loss L = w_rec L_rec + w_lift L_lift + w_ctrb L_ctrb (paper: 0.5, 1.0, 0.1).
     weight_reconstruction: float = 0.5
@@ -206,7 +206,8 @@ class KoopmanConfig:
 
     @classmethod
     def of(cls, model, metadata):
-        """The recipe a model file was trained with: its config and its `training` record."""
+        """The recipe a model file was trained with: its ModelConfig and the metadata's
+        `training` record, as `model_file.load` returns them (checked there)."""
         return cls(model, TrainingConfig(**metadata.get('training', {})))
 
 
@@ -282,6 +283,7 @@ def load(directory):
         raise ModelFileError(f'{meta_path}: no config object (the ModelConfig fields)')
     try:
         config, meta['training'] = split_config(meta['config'], meta.get('training'))
+        meta['config'] = dataclasses.asdict(config)      # one layout, whatever the file's
     except (KeyError, TypeError, ValueError) as error:
         raise ModelFileError(f'{meta_path}: bad config ({error})')
     tensors = read_weights(weights_path)
@@ -291,13 +293,19 @@ def load(directory):
 
 def split_config(values, training=None):
     """(ModelConfig, the TrainingConfig fields) of a model file's `config` and `training`.
-    Files written before the two were kept apart hold both in `config`."""
+    A file may hold both in `config` (the flat layout), or some of the training's there: each
+    training field is taken from wherever the file gives it, and one given twice with two
+    values, or a `training` key that is no TrainingConfig field, is a ValueError."""
     values, unknown = KoopmanConfig.current_options(values)
-    if unknown:
-        raise ValueError(f'unknown config keys {unknown}')
-    recipe = KoopmanConfig().replace(**values)
-    if not set(values) & set(_names(TrainingConfig)):
-        recipe = recipe.replace(**dict(training or {}))
+    record, _ = KoopmanConfig.current_options(dict(training or {}))
+    stray = sorted(set(record) - set(_names(TrainingConfig)))
+    if unknown or stray:
+        raise ValueError(f'unknown config keys {unknown}' if unknown else
+                         f'training keys {stray} are no TrainingConfig fields')
+    clash = sorted(k for k in set(values) & set(record) if values[k] != record[k])
+    if clash:
+        raise ValueError(f'config and training give {clash} two values')
+    recipe = KoopmanConfig().replace(**{**record, **values})
     return recipe.model, dataclasses.asdict(recipe.training)
 
 
