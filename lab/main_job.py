@@ -56,8 +56,9 @@ def main(argv=None):
                              namespace=args.namespace).run()
             rows.append(run.figures)
             curves[law] = (run.loop.tau, run.loop.x, run.loop.u[:-1])
-            print(f'{law}: settle tau {run.figures["settle_tau"]}, ratio '
-                  f'{run.figures["frontier_ratio"]}', flush=True)
+            settle, ratio = run.figures['settle_tau'], run.figures['frontier_ratio']
+            print(f'{law}: settle tau {"-" if settle is None else f"{settle:.2f}"}, ratio '
+                  f'{"-" if ratio is None else f"{ratio:.3f}"}', flush=True)
     except DeploymentError as error:
         print(f'main_job: {error}', file=sys.stderr)
         return 1

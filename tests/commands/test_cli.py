@@ -221,3 +221,19 @@ def test_a_preset_may_set_the_observer_and_use_dotted_names_for_deploy(tmp_path)
     args = deploy.parse_args(['--preset', str(path), '--set', 'koopman_mpc.r=3'])
     assert args.deployment.settings['observer'] == {'disturbance': 'none'}
     assert args.deployment.settings['koopman_mpc'] == {'horizon': 8, 'r': 3.0}  # --set on top
+
+
+def test_a_mistyped_model_plant_or_bag_folder_names_what_there_is(tmp_path):
+    """The one line for a model or plant that is not there lists the shipped ones; a folder of
+    bags given where one bag is expected says which to give."""
+    from tsr_koopman_ctrl.bag import BagReader
+    from tsr_koopman_ctrl.model import ModelFileError, resolve
+    from tsr_sim.plant import plant_file
+    with pytest.raises(ModelFileError, match=r'the shipped models are .*koopman_retrieval'):
+        resolve('koopman_defualt')
+    with pytest.raises(ValueError, match=r'the variants are .*actuator_weak'):
+        plant_file('actuator_wek')
+    (tmp_path / 'bags' / 'run_1').mkdir(parents=True)
+    (tmp_path / 'bags' / 'run_1' / 'run_1_0.mcap').write_bytes(b'')
+    with pytest.raises(FileNotFoundError, match=r'a folder of bags: give one, e\.g\. .*run_1'):
+        BagReader(str(tmp_path / 'bags'))

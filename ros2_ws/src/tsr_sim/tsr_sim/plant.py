@@ -330,10 +330,13 @@ def plant_file(name):
     if share is None:
         tried.append(f'share/tsr_sim/config/plants ({NOT_SOURCED})')
     else:
-        candidate = os.path.join(share, 'config', 'plants', f'{name}.yaml')
+        plants = os.path.join(share, 'config', 'plants')
+        candidate = os.path.join(plants, f'{name}.yaml')
         if os.path.isfile(candidate):
             return candidate
         tried.append(candidate)
+        known = sorted(f[:-5] for f in os.listdir(plants) if f.endswith('.yaml'))
+        tried.append(f'the variants are {", ".join(known)}')
     raise ValueError(f'no plant variant {name!r} (tried {", ".join(tried)})')
 
 

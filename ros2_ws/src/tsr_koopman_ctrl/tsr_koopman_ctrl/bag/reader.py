@@ -113,7 +113,12 @@ class BagReader:
         self.path = path
         self.files = bag_files(path)
         if not self.files:
-            raise FileNotFoundError(f'no .mcap files in {path}')
+            bags = [name for name in sorted(os.listdir(path))
+                    if os.path.isdir(os.path.join(path, name))
+                    and bag_files(os.path.join(path, name))]
+            hint = (f' (a folder of bags: give one, e.g. {os.path.join(path, bags[0])})'
+                    if bags else '')
+            raise FileNotFoundError(f'no .mcap files in {path}{hint}')
         self.report = ReadReport()
         self.schemas = {}              # type name -> Schema record
         self.topics = {}               # topic name -> type name

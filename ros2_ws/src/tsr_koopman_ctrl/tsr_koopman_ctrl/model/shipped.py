@@ -36,6 +36,8 @@ def resolve(model):
         if os.path.isdir(candidate):
             return candidate
         tried.append(candidate)
+        names = sorted(n for n in os.listdir(shipped) if os.path.isdir(os.path.join(shipped, n)))
+        tried.append(f'the shipped models are {", ".join(names)}')
     elif shipped is None:
         tried.append(f'share/{PACKAGE}/models ({NOT_SOURCED})')
     from tsr_koopman_ctrl.model.model_file import ModelFileError
