@@ -22,7 +22,6 @@ from tsr_sim import dynamics
 from tsr_sim.units import Scale
 
 from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller
-from tsr_koopman_ctrl.control.offset_free import ObserverSettings
 from tsr_koopman_ctrl.control.registry import preset
 from tsr_koopman_ctrl.evaluation import PAPER_START
 
@@ -47,8 +46,7 @@ def main():
         settings = preset(args.preset) if args.preset else {}
     except ValueError as error:
         parser.error(str(error))
-    wrappers = ({} if args.offset_free else
-                {'observer': ObserverSettings(disturbance='none'), 'supervisor': 'none'})
+    wrappers = {} if args.offset_free else {'observer': 'none', 'supervisor': 'none'}
     h = dynamics.PAPER_STEP
     period_us = Scale().tau_to_seconds(h) * 1e6   # of flight, at the paper's orbit rate
     rows = []

@@ -24,8 +24,7 @@ from lab.bench.printed import add_options, Printed  # noqa: E402
 
 
 #: The transport alone: linear_lqr without an observer computes in ~2 us a step.
-TRANSPORT = ('linear_lqr', parse_assignments(['observer.disturbance=none']),
-             'observer.disturbance=none')
+TRANSPORT = ('linear_lqr', ['observer.disturbance=none'])
 
 
 def lockstep(law, settings, steps):
@@ -56,15 +55,16 @@ def main():
     args = parser.parse_args()
     say = Printed(parser, args)
     try:
-        settings = parse_assignments(args.set)
+        parse_assignments(args.set)         # a bad one is one line, before any run
     except ValueError as error:
         parser.error(str(error))
-    runs = [(args.law, settings, ' '.join(args.set))]
-    if not args.no_baseline and args.law != TRANSPORT[0]:
+    runs = [(args.law, args.set)]
+    if not args.no_baseline and (args.law, args.set) != TRANSPORT:
         runs.append(TRANSPORT)
     rates = []
-    for law, law_settings, shown in runs:
-        steps, span = lockstep(law, law_settings, args.steps)
+    for law, assignments in runs:
+        steps, span = lockstep(law, parse_assignments(assignments), args.steps)
+        shown = ' '.join(assignments)
         rates.append(steps / span)
         say(f'lockstep over DDS ({law}{", " if shown else ""}{shown}): '
             f'{steps} steps in {span:.2f} s = {steps / span:,.0f} steps/s '

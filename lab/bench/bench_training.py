@@ -31,8 +31,7 @@ def main():
     args = parser.parse_args()
     say = Printed(parser, args)
     _, model_config, meta = model_file.load(resolve(args.model))
-    config = model_file.KoopmanConfig.of(model_config, meta)
-    training = config.training
+    training = model_file.KoopmanConfig.of(model_config, meta).training
     data, _ = datasets.sample(datasets.SamplingConfig(trajectories=training.batch_size * 4))
     x = torch.as_tensor(data.x, dtype=torch.float32)
     u = torch.as_tensor(data.u, dtype=torch.float32)
