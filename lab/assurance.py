@@ -3,16 +3,21 @@ the default) against the bare one (`supervisor='none'`) and its fallback flown a
 (`physics_nmpc`), ROS-free from the nine comparison starts.
 
     python -m lab.assurance [--parts nominal swing robust] [--out lab/results/assurance]
+    python -m lab.assurance --parts monitor \
+        --out lab/results/assurance_monitor
 
 Parts: `nominal`, the shipped settings on the nominal plant (the supervisor should change
 nothing); `swing`, `theta_max 0.4` (the bare learned NMPC tumbles from three starts); `robust`,
 actuator gain 0.8 and 1.2 with an unmodelled 0.05-tau lag and sensor noise 1e-3 (is a start
-slower supervised?). Per run: settle tau, swing, the frontier ratio at the run's swing, the
-supervisor's switches and the steps its fallback flew. Writes assurance.md and assurance.json
-into --out and the tables into docs/supervisor.md between its markers.
+slower supervised?); `monitor`, the robust part's runs under other monitor settings
+(`MONITOR_VARIANTS`, in --workers processes): does one leave no start slower than bare? Per
+run: settle tau, swing, the frontier ratio at the run's swing, the supervisor's switches and
+the steps its fallback flew. Writes assurance.md and assurance.json into --out and the tables
+into docs/supervisor.md between the markers named after --out.
 """
 
 import argparse
+import concurrent.futures
 import os
 import sys
 
@@ -32,11 +37,25 @@ ROBUST_PLANTS = {f'gain {gain}, lag 0.05, noise 1e-3': {
 LAWS = {'bare': ('koopman_nmpc', {'supervisor': 'none'}),
         'supervised': ('koopman_nmpc', {}),
         'fallback alone': ('physics_nmpc', {})}
+#: The monitor settings the `monitor` part flies beside the shipped ones (label: supervisor
+#: settings): a quicker or slower hand-back, a fault rule that needs three faults.
+MONITOR_VARIANTS = {'shipped': {}, 'takeback_steps 5': {'takeback_steps': 5},
+                    'takeback_steps 10': {'takeback_steps': 10},
+                    'takeback_steps 40': {'takeback_steps': 40},
+                    'fault_count 3, fault_window 3': {'fault_count': 3, 'fault_window': 3}}
+#: The `monitor` part's yardstick: the bare law from each start moved by this much in theta
+#: [rad], far below any sensor's resolution. How far its settle times move is how far a run
+#: moves for no reason a monitor could see.
+NUDGE = 1e-9
+NUDGED = f'bare, theta0 + {NUDGE:g} rad'
 PAGE = os.path.join('docs', 'supervisor.md')
+#: Settle times closer than half a step are the same.
+TIE = 0.5 * dynamics.PAPER_STEP
 
 
 def fly(label, start, settings, plant=None, steps=2000):
-    law_name, options = LAWS[label]
+    law_name, options = LAWS.get(label) or ('koopman_nmpc',
+                                            {'supervisor': MONITOR_VARIANTS[label]})
     law = make_controller(law_name, **options, **settings)
     states, tensions = closed_loop(law, start, steps, plant=plant)
     figures = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions,
@@ -68,10 +87,62 @@ def part(name, settings, plant, labels, rows):
     return '\n'.join(lines)
 
 
+def monitor_part(workers, rows):
+    """The robust part's runs, bare, bare from a nudged start (NUDGE) and under each of
+    MONITOR_VARIANTS, in `workers` processes; one markdown table: per setting, the runs slower
+    and faster than bare."""
+    nudge = np.array([NUDGE, 0.0, 0.0, 0.0])
+    runs = [(label, start, plant) for plant in ROBUST_PLANTS.values() for start in STARTS
+            for label in ['bare', NUDGED, *MONITOR_VARIANTS]]
+    jobs = [('bare', list(np.add(start, nudge)), {}, plant) if label == NUDGED
+            else (label, start, {}, plant) for label, start, plant in runs]
+    with concurrent.futures.ProcessPoolExecutor(workers) as pool:
+        flown = list(pool.map(fly, *zip(*jobs)))
+    bare = {}
+    for (label, start, plant), row in zip(runs, flown):
+        row.update(law=label, start=list(start), part='monitor',
+                   plant=next(k for k, v in ROBUST_PLANTS.items() if v is plant))
+        if label == 'bare':
+            bare[row['plant'], tuple(start)] = row['settle_tau']
+        rows.append(row)
+    lines = ['| monitor | ' + ' | '.join(f'{plant}: slower than bare (by up to)'
+                                         for plant in ROBUST_PLANTS)
+             + ' | faster than bare (by up to) | settle tau, all runs | switches |',
+             '|---' * (len(ROBUST_PLANTS) + 4) + '|']
+    for label in [NUDGED, *MONITOR_VARIANTS]:
+        mine = [row for row in rows if row['law'] == label and row['part'] == 'monitor']
+        change = []     # (plant, settle tau - bare's, ratio - 1); not settled: inf
+        for row in mine:
+            reference = bare[row['plant'], tuple(row['start'])]
+            if row['settle_tau'] is None or reference is None:
+                unsettled = np.inf if row['settle_tau'] is None else -np.inf
+                change.append((row['plant'], unsettled, unsettled))
+            else:
+                change.append((row['plant'], row['settle_tau'] - reference,
+                               row['settle_tau'] / reference - 1.0))
+
+        def counted(values):
+            if not values:
+                return '0'
+            worst = max(values)
+            return f"{len(values)} ({'one not settled' if worst == np.inf else f'{worst:.1%}'})"
+        slower = [counted([r for p, d, r in change if p == plant and d > TIE])
+                  for plant in ROBUST_PLANTS]
+        faster = counted([-r for _, d, r in change if d < -TIE])
+        lines.append(f'| {label} | ' + ' | '.join(slower) + f' | {faster} | '
+                     f"{sum(row['settle_tau'] or np.inf for row in mine):.2f} | "
+                     f"{sum(row['switches'] for row in mine)} |")
+    lines.append(f"| bare | {' | '.join('-' for _ in ROBUST_PLANTS)} | - | "
+                 f"{sum(tau or np.inf for tau in bare.values()):.2f} | - |")
+    return '\n'.join(lines)
+
+
 def parser():
     p = argparse.ArgumentParser(prog='assurance', description=__doc__.split('\n\n')[0])
     p.add_argument('--parts', nargs='+', default=['nominal', 'swing', 'robust'],
-                   choices=('nominal', 'swing', 'robust'))
+                   choices=('nominal', 'swing', 'robust', 'monitor'))
+    p.add_argument('--workers', type=int, default=2,
+                   help='processes the monitor part flies in (default 2)')
     p.add_argument('--out', default=os.path.join('lab', 'results', 'assurance'))
     p.add_argument('--page', default=PAGE)
     return p
@@ -98,6 +169,11 @@ def main(argv=None):
         for label, plant in ROBUST_PLANTS.items():
             sections.append(f'{label} ({cells}):\n\n'
                             + part(label, {}, plant, ['bare', 'supervised'], rows))
+    if 'monitor' in args.parts:
+        sections.append('The robust part under other monitor settings (runs of '
+                        f'{len(STARTS)} starts per plant; a run is slower or faster than bare '
+                        f'when its settle time differs by more than half a step):\n\n'
+                        + monitor_part(args.workers, rows))
     text = '\n\n'.join(sections) + '\n'
     publish(args.out, 'assurance', rows, text, args.page, marker=marker_name(args.out))
     return 0

@@ -171,10 +171,11 @@ def test_the_pages_generated_by_their_studies(monkeypatch):
     monkeypatch.chdir(ROOT)
     generated = {entry['name'] for entry in ENTRIES if page_option(entry, monkeypatch)}
     assert generated == {'main_job', 'comparison', 'comparison_swing0.4', 'robustness',
-                         'assurance', 'fallback_region', 'timed_rehearsal', 'prediction',
-                         'prediction_main_job', 'prediction_momentum', 'nmpc_nominal',
-                         'nmpc_swing0.4', 'nmpc_robustness', 'data_loop_actuator_weak',
-                         'data_loop_actuator_strong', 'data_loop_heavy_robot',
-                         'data_loop_eccentric_orbit', 'bench_recorder', 'bench_lockstep',
-                         'bench_compute', 'bench_compute_offset_free', 'bench_qp',
-                         'bench_nmpc', 'bench_sampling', 'bench_training', 'bench_inference'}
+                         'assurance', 'assurance_monitor', 'fallback_region', 'timed_rehearsal',
+                         'prediction', 'prediction_main_job', 'prediction_momentum',
+                         'nmpc_nominal', 'nmpc_swing0.4', 'nmpc_robustness',
+                         'data_loop_actuator_weak', 'data_loop_actuator_strong',
+                         'data_loop_heavy_robot', 'data_loop_eccentric_orbit', 'bench_recorder',
+                         'bench_lockstep', 'bench_compute', 'bench_compute_offset_free',
+                         'bench_qp', 'bench_nmpc', 'bench_sampling', 'bench_training',
+                         'bench_inference'}
