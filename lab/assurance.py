@@ -89,8 +89,8 @@ def part(name, settings, plant, labels, rows):
 
 def monitor_part(workers, rows):
     """The robust part's runs, bare, bare from a nudged start (NUDGE) and under each of
-    MONITOR_VARIANTS, in `workers` processes; one markdown table: per setting, the runs slower
-    and faster than bare."""
+    MONITOR_VARIANTS, in `workers` processes, appended to `rows`; their table
+    (`monitor_table`)."""
     nudge = np.array([NUDGE, 0.0, 0.0, 0.0])
     runs = [(label, start, plant) for plant in ROBUST_PLANTS.values() for start in STARTS
             for label in ['bare', NUDGED, *MONITOR_VARIANTS]]
@@ -98,41 +98,52 @@ def monitor_part(workers, rows):
             else (label, start, {}, plant) for label, start, plant in runs]
     with concurrent.futures.ProcessPoolExecutor(workers) as pool:
         flown = list(pool.map(fly, *zip(*jobs)))
-    bare = {}
     for (label, start, plant), row in zip(runs, flown):
         row.update(law=label, start=list(start), part='monitor',
                    plant=next(k for k, v in ROBUST_PLANTS.items() if v is plant))
-        if label == 'bare':
-            bare[row['plant'], tuple(start)] = row['settle_tau']
         rows.append(row)
+    return monitor_table([row for row in rows if row['part'] == 'monitor'])
+
+
+def monitor_table(rows):
+    """One markdown table of the monitor part's `rows` (law, plant, start, settle_tau,
+    switches): per setting and plant, the runs slower than the bare law's from the same start
+    by more than TIE (by up to how much), the runs faster, the summed settle and switches."""
+    plants = list(dict.fromkeys(row['plant'] for row in rows))
+    bare = {(row['plant'], tuple(row['start'])): row['settle_tau'] for row in rows
+            if row['law'] == 'bare'}
     lines = ['| monitor | ' + ' | '.join(f'{plant}: slower than bare (by up to)'
-                                         for plant in ROBUST_PLANTS)
+                                         for plant in plants)
              + ' | faster than bare (by up to) | settle tau, all runs | switches |',
-             '|---' * (len(ROBUST_PLANTS) + 4) + '|']
-    for label in [NUDGED, *MONITOR_VARIANTS]:
-        mine = [row for row in rows if row['law'] == label and row['part'] == 'monitor']
-        change = []     # (plant, settle tau - bare's, ratio - 1); not settled: inf
+             '|---' * (len(plants) + 4) + '|']
+    labels = dict.fromkeys(row['law'] for row in rows if row['law'] != 'bare')
+    for label in labels:
+        mine = [row for row in rows if row['law'] == label]
+        change = []     # (plant, settle tau - bare's, ratio - 1); not settled: +-inf
         for row in mine:
             reference = bare[row['plant'], tuple(row['start'])]
-            if row['settle_tau'] is None or reference is None:
+            if row['settle_tau'] is None and reference is None:
+                change.append((row['plant'], 0.0, 0.0))      # neither settled: the same
+            elif row['settle_tau'] is None or reference is None:
                 unsettled = np.inf if row['settle_tau'] is None else -np.inf
                 change.append((row['plant'], unsettled, unsettled))
             else:
                 change.append((row['plant'], row['settle_tau'] - reference,
                                row['settle_tau'] / reference - 1.0))
 
-        def counted(values):
+        def counted(values, unsettled):
             if not values:
                 return '0'
             worst = max(values)
-            return f"{len(values)} ({'one not settled' if worst == np.inf else f'{worst:.1%}'})"
-        slower = [counted([r for p, d, r in change if p == plant and d > TIE])
-                  for plant in ROBUST_PLANTS]
-        faster = counted([-r for _, d, r in change if d < -TIE])
+            lost = sum(value == np.inf for value in values)
+            return f"{len(values)} ({f'{lost} {unsettled}' if lost else f'{worst:.1%}'})"
+        slower = [counted([r for p, d, r in change if p == plant and d > TIE], 'not settled')
+                  for plant in plants]
+        faster = counted([-r for _, d, r in change if d < -TIE], 'where bare did not settle')
         lines.append(f'| {label} | ' + ' | '.join(slower) + f' | {faster} | '
                      f"{sum(row['settle_tau'] or np.inf for row in mine):.2f} | "
                      f"{sum(row['switches'] for row in mine)} |")
-    lines.append(f"| bare | {' | '.join('-' for _ in ROBUST_PLANTS)} | - | "
+    lines.append(f"| bare | {' | '.join('-' for _ in plants)} | - | "
                  f"{sum(tau or np.inf for tau in bare.values()):.2f} | - |")
     return '\n'.join(lines)
 
