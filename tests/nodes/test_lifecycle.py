@@ -101,7 +101,9 @@ def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, sta
     ros.spin_for(1.0)
     assert watch.commands == []          # configured, not commanding
     assert transition(ros, 'activate') and lifecycle_state(ros) == ACTIVE
-    ros.spin_until(lambda: len(watch.commands) > 20, what='commands once active')
+    # (the command publisher is made at configure: on a busy machine its discovery by this
+    # side and the simulator can take seconds)
+    ros.spin_until(lambda: len(watch.commands) > 20, timeout=30.0, what='commands once active')
     assert all(step != wire.NO_STEP for step, _ in watch.commands)
     ros.spin_until(lambda: health_of(watch, 'tsr_controller')[0] == b'\x00',
                    what='OK health while commanding')
