@@ -1,5 +1,6 @@
-"""Runtime assurance measured: the supervised learned NMPC (`make_controller('koopman_nmpc')`,
-the default) against the bare one (`supervisor='none'`) and its fallback flown alone
+"""Runtime assurance measured: the supervised learned NMPC (`make_controller('koopman_nmpc',
+safety='none')`, the default without its safety filter) against the bare one
+(`supervisor='none'`) and its fallback flown alone
 (`physics_nmpc`), ROS-free from the nine comparison starts.
 
     python -m lab.assurance [--parts nominal swing robust] [--out lab/results/assurance]
@@ -34,8 +35,8 @@ ROBUST_PLANTS = {f'gain {gain}, lag 0.05, noise 1e-3': {
     'actuator_gain': gain, 'actuator_lag': 0.05, 'sensor_noise_std': [1e-3] * 4}
     for gain in (0.8, 1.2)}
 #: The laws each part flies: (label, law, make_controller options).
-LAWS = {'bare': ('koopman_nmpc', {'supervisor': 'none'}),
-        'supervised': ('koopman_nmpc', {}),
+LAWS = {'bare': ('koopman_nmpc', {'supervisor': 'none', 'safety': 'none'}),
+        'supervised': ('koopman_nmpc', {'safety': 'none'}),
         'fallback alone': ('physics_nmpc', {})}
 #: The monitor settings the `monitor` part flies beside the shipped ones (label: supervisor
 #: settings): a quicker or slower hand-back, a fault rule that needs three faults.
@@ -55,7 +56,8 @@ TIE = 0.5 * dynamics.PAPER_STEP
 
 def fly(label, start, settings, plant=None, steps=2000):
     law_name, options = LAWS.get(label) or ('koopman_nmpc',
-                                            {'supervisor': MONITOR_VARIANTS[label]})
+                                            {'supervisor': MONITOR_VARIANTS[label],
+                                             'safety': 'none'})
     law = make_controller(law_name, **options, **settings)
     states, tensions = closed_loop(law, start, steps, plant=plant)
     figures = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions,

@@ -105,7 +105,9 @@ def headline(rows):
                      f"{ms(r['compute_p99_us'])} | {fmt(r['frontier_tau'], 1)} | "
                      f"**{fmt(r['frontier_ratio'])}** |")
     switches = sum(r.get('supervisor_switches') or 0 for r in rows)
-    lines += ['', f'The runtime-assurance supervisor handed over {switches} times in these runs.']
+    corrected = sum(r.get('safety_corrections') or 0 for r in rows)
+    lines += ['', f'The runtime-assurance supervisor handed over {switches} times in these runs, '
+              f'and the safety filter corrected {corrected} steps.']
     return '\n'.join(lines) + '\n'
 
 

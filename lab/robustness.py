@@ -35,10 +35,17 @@ def cases():
             yield f'gain {gain}, lag {LAG}' + (f', noise {noise:g}' if noise else ''), plant
 
 
+#: The grid is flown without the predictive safety filter, as docs/robustness.md was measured:
+#: its certificates do not model the actuator's lag and gain, and on the weak lagging actuator
+#: its hand-overs to the slower fallback cost (from the paper's start, gain 0.8 and lag 0.05:
+#: 6.18 tau filtered against 3.69 unfiltered).
+SAFETY = 'none'
+
+
 def settle(law, observer, x0, plant, steps):
     import numpy as np
-    states, tensions = closed_loop(make_controller(law, observer=observer), x0, steps,
-                                   plant=plant)
+    states, tensions = closed_loop(make_controller(law, observer=observer, safety=SAFETY), x0,
+                                   steps, plant=plant)
     figures = run_figures(np.arange(len(states)) * 0.01, states, tensions,
                           halted=len(states) <= steps)
     return figures['settle_tau'], figures['final_state'][2]

@@ -2,9 +2,9 @@
 the lab stands on the public API, never on the commands.
 
 Floors, from the ground: the plant core (tsr_sim, ROS-free); the model and the bags; the laws;
-the figures of a run; learning; the ROS glue and the process layer (nodes, the deployment, the
-launcher, tsr_sim's node and ros_io); the commands, the tools' argparse types and the test
-fixtures; the lab beside it all.
+the figures of a run; learning; campaigns (ROS-free: runs on Dask, rows, reports); the ROS
+glue and the process layer (nodes, the deployment, the launcher, tsr_sim's node and ros_io);
+the commands, the tools' argparse types and the test fixtures; the lab beside it all.
 A module imports from its own floor or below. Read from the source (ast), imports inside
 functions included.
 """
@@ -25,6 +25,7 @@ FLOORS = [
     ('tsr_koopman_ctrl.control',),
     ('tsr_koopman_ctrl.evaluation',),
     ('tsr_koopman_ctrl.learning',),
+    ('tsr_koopman_ctrl.campaign',),
     ('tsr_koopman_ctrl.nodes', 'tsr_koopman_ctrl.deployment', 'tsr_koopman_ctrl.launcher',
      'tsr_sim.sim_node', 'tsr_sim.ros_io'),
     ('tsr_koopman_ctrl.commands', 'tsr_koopman_ctrl.testing', 'tsr_koopman_ctrl.arguments',

@@ -58,14 +58,15 @@ def test_manifest_declares_every_import_and_nothing_stale(package):
 def test_the_control_path_never_imports_torch_and_casadi_only_for_the_exact_equations():
     """The controller node's imports and a step of the learned laws on their shipped models (the
     main job's koopman_nmpc among them): no torch (training only). Casadi is loaded with the
-    exact equations' map only (physics_nmpc, the supervisor's fallback, a cold start's guide),
-    never by the registry, the node or a law without them."""
+    exact equations' map only (physics_nmpc, the supervisor's fallback, a cold start's guide,
+    the safety filter's backups), never by the registry, the node or a law without them."""
     code = ('import sys\n'
             'import tsr_koopman_ctrl.nodes.controller_node\n'
             'from tsr_koopman_ctrl.control import make_controller\n'
             'from tsr_koopman_ctrl.learning import Edmd, Sindy, multistep_errors\n'
             'make_controller("linear_lqr").compute([0.0, 0.0, -0.99, 0.5])\n'
-            'make_controller("koopman_lqr", supervisor="none").compute([0.0, 0.0, -0.99, 0.5])\n'
+            'make_controller("koopman_lqr", supervisor="none", safety="none").compute('
+            '[0.0, 0.0, -0.99, 0.5])\n'
             'assert "casadi" not in sys.modules, "casadi imported"\n'
             'for name in ("koopman_mpc", "koopman_lqr", "koopman_nmpc"):\n'
             '    make_controller(name).compute([0.0, 0.0, -0.99, 0.5])\n'

@@ -46,7 +46,8 @@ def main():
         settings = preset(args.preset) if args.preset else {}
     except ValueError as error:
         parser.error(str(error))
-    wrappers = {} if args.offset_free else {'observer': 'none', 'supervisor': 'none'}
+    wrappers = {} if args.offset_free else {'observer': 'none', 'supervisor': 'none',
+                                            'safety': 'none'}
     h = dynamics.PAPER_STEP
     period_us = Scale().tau_to_seconds(h) * 1e6   # of flight, at the paper's orbit rate
     rows = []
@@ -57,7 +58,8 @@ def main():
         rows.append((name, np.median(times), np.percentile(times, 99), times.max(),
                      law.fallbacks))
     base = next((r[1] for r in rows if r[0] == 'linear_lqr'), None)
-    kind = ('laws as deployed (offset-free, learned laws supervised)' if args.offset_free
+    kind = ('laws as deployed (offset-free, learned laws supervised and filtered)'
+            if args.offset_free
             else 'bare laws')
     say(f"{args.steps} steps from the paper start, {kind}, "
         f"{args.preset or 'default'} settings; h = {h} tau = "

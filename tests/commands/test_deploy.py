@@ -99,9 +99,17 @@ def test_shipped_model_deploys_into_the_zone_over_dds_like_the_ros_free_loop(
     assert settle_index(loop.x) is not None
     # One failed QP from this start, recovered by a cold start, in both loops.
     assert loop.controller_status.solver_fallbacks == law.fallbacks <= 1
+    # The safety filter's verdicts travel in the bag: each step's, as the ROS-free loop's.
+    assert loop.corrections == law.corrections
+    assert loop.controller_status.safety_corrections == law.corrections
+    certified = loop.certificate[:steps] == 'certified'
+    assert certified.sum() == law.counts['certified'] > 0
+    np.testing.assert_allclose(loop.requested[:steps][certified], loop.u[:steps][certified],
+                               atol=1e-7)
     (run_dir,) = (tmp_path / 'out').iterdir()
     (row,) = json.loads((run_dir / 'summary.json').read_text())
     assert row['controller'] == 'koopman_nmpc' and row['settle_tau'] < 4.0
+    assert row['safety_corrections'] == law.corrections
     assert row['frontier_ratio'] == pytest.approx(row['settle_tau'] / row['frontier_tau'])
 
 

@@ -97,7 +97,7 @@ def test_on_koopman_block_fast_the_tuned_settings_settle_near_the_frontier(x0, n
 def test_the_observable_feedforward_is_what_makes_it_fast():
     """The same law with K_phi = 0 (the LQR of the model's state block alone, the same gain
     near the target) settles ~1 tau later from the paper's start (4.69 against 5.64 tau)."""
-    controller = make_controller('koopman_lqr', supervisor='none',
+    controller = make_controller('koopman_lqr', supervisor='none', safety='none',
                                  **preset_settings('tuned_cross'))
     with_lift = closed_loop_figures(controller, PAPER_START, 1500)['settle_tau']
     law = controller.law

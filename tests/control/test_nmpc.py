@@ -1,6 +1,7 @@
 """The NMPC (control/nmpc.py): one real-time-iteration machinery, two maps (physics, learned)."""
 
 import pathlib
+import shutil
 
 import numpy as np
 import pytest
@@ -65,6 +66,32 @@ def test_the_physics_map_is_the_planar_rk4_and_its_sensitivities_are_exact():
     fd_a, fd_b = finite_differences(physics.advance, x, u, counts)
     np.testing.assert_allclose(a, fd_a, atol=1e-7)
     np.testing.assert_allclose(b, fd_b, atol=1e-7)
+
+
+@pytest.mark.skipif(shutil.which('cc') is None, reason='no C compiler')
+def test_the_physics_maps_native_build_is_casadi_bit_for_bit(tmp_path, monkeypatch):
+    """A batch function's native build (C code, the system's compiler, kept in the cache)
+    gives the virtual machine's numbers exactly: a run does not depend on when it landed."""
+    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path))
+    x, u = states_and_tensions(3)
+    counts = np.array([1, 2, 10])
+    physics = PhysicsMap()
+    interpreted = physics.interval(x, u, counts)
+    assert not physics.native()
+    physics.compile(wait=True)
+    assert physics.native() and list(tmp_path.rglob('*.so'))
+    for native, expected in zip(physics.interval(x, u, counts), interpreted):
+        np.testing.assert_array_equal(native, expected)
+    assert PhysicsMap().batch(counts, True).native is not None     # (from the cache)
+
+
+def test_the_banded_condensing_is_the_interval_by_interval_one():
+    rng = np.random.default_rng(3)
+    a = np.eye(4) + 0.3 * rng.standard_normal((39, 4, 4))
+    b, nodes, end = (rng.standard_normal(shape) for shape in ((39, 4), (40, 4), (39, 4)))
+    for banded, sequential in zip(nmpc.condense_banded(nodes, end, a, b),
+                                  nmpc.condense(nodes, end, a, b)):
+        np.testing.assert_allclose(banded, sequential, rtol=1e-12, atol=1e-12)
 
 
 def test_the_learned_map_is_the_relifted_model_and_its_exact_sensitivities_chain(model):
@@ -212,7 +239,7 @@ def test_koopman_nmpc_flies_the_momentum_model_near_the_frontier():
     from the paper's start: within 1.15x the frontier (measured 1.126 in 2000 steps), no
     solver fallback."""
     law = make_controller('koopman_nmpc', model=str(ROOT / 'models' / 'koopman_momentum'),
-                          supervisor='none')
+                          supervisor='none', safety='none')
     states, tensions = closed_loop(law, PAPER_START, 600)
     summary = figures(states, tensions, PAPER_START)
     assert summary['frontier_ratio'] is not None and summary['frontier_ratio'] <= 1.15
@@ -300,7 +327,7 @@ def test_a_failed_step_of_the_learned_nmpc_cold_starts_on_the_exact_equations(mo
 def test_the_warm_up_builds_what_a_failed_step_flies_on():
     """A failed step's cold start rolls out on the nominal equations' compiled functions:
     built by the warm-up (at configure), not by the first failure mid-run (~400 ms)."""
-    law = make_controller('koopman_nmpc', supervisor='none')
+    law = make_controller('koopman_nmpc', supervisor='none', safety='none')
     built = law.law.recovery._functions
     assert not built
     law.warm_up()
@@ -398,7 +425,8 @@ def test_planning_with_the_actuator_lag_settles_a_strong_lagging_actuator():
     tau, 2.3x nominal); with actuator_lag 0.05 it settles within 1.2x the nominal 2.55 tau
     (measured 2.71 with 1e-3 sensor noise too)."""
     start, plant = (0.0, 0.0, -0.95, 1.0), {'actuator_gain': 1.2, 'actuator_lag': 0.05}
-    law = make_controller('koopman_nmpc', model=RETRIEVAL, actuator_lag=0.05)
+    # (the supervised law: the safety filter's certificates do not model the lag)
+    law = make_controller('koopman_nmpc', model=RETRIEVAL, actuator_lag=0.05, safety='none')
     states, tensions = closed_loop(law, start, 400, plant=plant)
     summary = figures(states, tensions, start)
     assert summary['settle_tau'] is not None and summary['settle_tau'] <= 1.2 * 2.55

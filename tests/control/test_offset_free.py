@@ -58,7 +58,7 @@ def test_the_bare_mpc_misses_the_zone_with_a_10_percent_gain_error_and_offset_fr
     bare, states, _ = settle(KoopmanMpc(), GAIN_ERROR)
     assert bare is None and abs(states[-1, dynamics.LENGTH_OFFSET]) > 0.01   # out of the zone
     nominal, _, _ = settle(make_controller('koopman_mpc'))
-    law = make_controller('koopman_mpc', supervisor='none')
+    law = make_controller('koopman_mpc', supervisor='none', safety='none')
     disturbed, _, _ = settle(law, GAIN_ERROR)
     assert disturbed is not None and disturbed <= 1.05 * nominal
     assert law.disturbance == pytest.approx(0.9, abs=1e-3)
@@ -82,7 +82,7 @@ def test_on_the_nominal_plant_the_physics_observer_changes_nothing_and_the_model
 
 
 def test_the_mpc_bounds_follow_the_estimated_gain():
-    law = make_controller('koopman_mpc', supervisor='none')
+    law = make_controller('koopman_mpc', supervisor='none', safety='none')
     law.observer.update(np.zeros(4), None)
     law.observer.estimate[-1] = 0.8
     law.compute(np.zeros(4))
@@ -134,14 +134,15 @@ def test_a_model_predictor_needs_a_model():
 
 
 def test_observer_none_builds_the_default_law_bare_as_the_readme_words_it():
-    """make_controller('koopman_nmpc', observer='none'): the supervised law with no observer
-    on the learned law or on its fallback, flying as the same law built with the observer's
-    settings given in full; the default wraps both."""
+    """make_controller('koopman_nmpc', observer='none'): the filtered, supervised law with no
+    observer on the learned law or on its fallback, flying as the same law built with the
+    observer's settings given in full; the default wraps both."""
     from tsr_koopman_ctrl.control.supervisor import Supervisor
     bare = make_controller('koopman_nmpc', observer='none')
-    assert isinstance(bare, Supervisor)
-    assert not isinstance(bare.learned, OffsetFree) and not isinstance(bare.fallback, OffsetFree)
-    wrapped = make_controller('koopman_nmpc')
+    assert isinstance(bare.law, Supervisor)
+    assert not isinstance(bare.law.learned, OffsetFree)
+    assert not isinstance(bare.law.fallback, OffsetFree)
+    wrapped = make_controller('koopman_nmpc').law
     assert isinstance(wrapped.learned, OffsetFree) and isinstance(wrapped.fallback, OffsetFree)
     x, u = closed_loop(bare, PAPER_X0, 150)
     same_x, same_u = closed_loop(make_controller(

@@ -137,7 +137,7 @@ def test_a_state_whose_sum_overflows_is_still_finite():
 def test_a_diverged_observer_gives_no_tension_rather_than_an_exception(law):
     """The node answers a non-finite tension with NON_FINITE_OUTPUT and no command; an
     exception out of its callback would end the node."""
-    controller = make_controller(law, supervisor='none')
+    controller = make_controller(law, supervisor='none', safety='none')
     controller.compute([0.0, 0.0, -0.99, 0.5])
     controller.observer.estimate[:] = np.nan
     assert np.isnan(controller.compute([0.0, 0.0, -0.98, 0.5]))

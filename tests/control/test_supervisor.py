@@ -46,6 +46,9 @@ class Scripted(Law):
     def prediction(self):
         return self.plan
 
+    def swing_bound(self):
+        return self.settings.theta_max
+
     def prediction_times(self):
         return np.array([0.0, 0.5, 2.0])
 
@@ -180,15 +183,17 @@ def test_the_learned_nmpc_takes_up_again_from_the_fallback_s_plan(monkeypatch):
 
 
 def test_make_controller_supervises_learned_laws_only():
-    assert isinstance(make_controller('koopman_nmpc'), Supervisor)
-    assert not isinstance(make_controller('koopman_nmpc', supervisor='none'), Supervisor)
+    assert isinstance(make_controller('koopman_nmpc', safety='none'), Supervisor)
+    assert not isinstance(make_controller('koopman_nmpc', supervisor='none', safety='none'),
+                          Supervisor)
     assert not isinstance(make_controller('physics_nmpc'), Supervisor)
     with pytest.raises(ValueError, match='supervisor.fallback must be one of'):
         make_controller('koopman_nmpc', supervisor={'fallback': 'linear'})
 
 
 def test_the_fallback_shares_the_learned_nmpc_s_cost_and_bounds():
-    supervisor = make_controller('koopman_nmpc', theta_max=0.4, q=(1.0, 2.0, 3.0, 4.0))
+    supervisor = make_controller('koopman_nmpc', theta_max=0.4, q=(1.0, 2.0, 3.0, 4.0),
+                                 safety='none')
     fallback = supervisor.fallback.law
     assert fallback.name == 'physics_nmpc'
     assert fallback.settings.theta_max == 0.4 and fallback.settings.q == (1.0, 2.0, 3.0, 4.0)
@@ -198,10 +203,10 @@ def test_the_fallback_shares_the_learned_nmpc_s_cost_and_bounds():
 def test_on_the_nominal_plant_the_supervised_law_flies_as_the_bare_one(start):
     """Shipped settings: the monitor never distrusts the learned NMPC, so every tension is
     the bare law's (its one failed QP from the paper's start included)."""
-    supervised = make_controller('koopman_nmpc')
+    supervised = make_controller('koopman_nmpc', safety='none')
     states, tensions = closed_loop(supervised, start, 600)
-    bare_states, bare_tensions = closed_loop(make_controller('koopman_nmpc',
-                                                             supervisor='none'), start, 600)
+    bare = make_controller('koopman_nmpc', supervisor='none', safety='none')
+    bare_states, bare_tensions = closed_loop(bare, start, 600)
     np.testing.assert_array_equal(tensions, bare_tensions)
     np.testing.assert_array_equal(states, bare_states)
     assert supervised.switches == 0
@@ -229,8 +234,8 @@ def test_asked_to_keep_the_swing_within_0_4_the_supervised_nmpc_does(start):
 def test_the_bare_learned_nmpc_loses_the_paper_s_start_at_0_4():
     """What the supervisor is for (if this passes, the model holds on its own: the test
     above would no longer show the supervisor at work)."""
-    states, _ = closed_loop(make_controller('koopman_nmpc', theta_max=0.4,
-                                            supervisor='none'), COMPARISON_STARTS[0], 2000)
+    bare = make_controller('koopman_nmpc', theta_max=0.4, supervisor='none', safety='none')
+    states, _ = closed_loop(bare, COMPARISON_STARTS[0], 2000)
     assert np.abs(states[:, dynamics.THETA]).max() > 0.405
 
 

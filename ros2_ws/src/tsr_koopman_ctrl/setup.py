@@ -47,6 +47,7 @@ setup(
             'retrain = tsr_koopman_ctrl.commands.retrain:main',
             'bag = tsr_koopman_ctrl.commands.bag:main',
             'config = tsr_koopman_ctrl.commands.config:main',
+            'campaign = tsr_koopman_ctrl.commands.campaign:main',
         ],
     },
 )

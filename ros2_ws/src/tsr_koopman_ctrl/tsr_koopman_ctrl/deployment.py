@@ -258,6 +258,7 @@ def read_result(bag, law, x0, planned_steps, namespace=None):
         clamped=status.clamped if status else None,
         supervisor_switches=status.supervisor_switches if status else None,
         fallback_steps=loop.fallback_steps,
+        safety_corrections=loop.corrections,
         dropped_states=status.dropped_states if status else None,
         overruns=status.overruns if status else None)
     return RunResult(bag=bag, loop=loop, figures=figures)
@@ -297,8 +298,9 @@ def summary_table(rows):
 
     lines = ['| law | x0 | settle tau (1% zone) | final l | theta range [rad] | '
              'l overshoot | max u | integral u dtau | compute median / p99 [us] | '
-             'fallback flew [steps] (switches) | frontier tau | ratio |',
-             '|---|---|---|---|---|---|---|---|---|---|---|---|']
+             'fallback flew [steps] (switches) | safety filter corrected [steps] | '
+             'frontier tau | ratio |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|---|']
     for r in rows:
         final_l = r['final_state'][dynamics.LENGTH_OFFSET] + 1.0
         lines.append(f"| {r['controller']} | {r['x0']} | {settle_cell(r)} | {final_l:.3f} | "
@@ -306,6 +308,7 @@ def summary_table(rows):
                      f"{r['length_overshoot']:.4f} | {r['tension_max']:.3f} | "
                      f"{r['tension_integral']:.2f} | {fmt(r['compute_median_us'], 0)} / "
                      f"{fmt(r['compute_p99_us'], 0)} | {r.get('fallback_steps', 0)} "
-                     f"({r.get('supervisor_switches') or 0}) | {fmt(r['frontier_tau'], 1)} | "
+                     f"({r.get('supervisor_switches') or 0}) | "
+                     f"{r.get('safety_corrections') or 0} | {fmt(r['frontier_tau'], 1)} | "
                      f"{fmt(r['frontier_ratio'])} |")
     return '\n'.join(lines)

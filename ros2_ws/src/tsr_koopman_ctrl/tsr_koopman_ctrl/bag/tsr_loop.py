@@ -119,6 +119,21 @@ class RecordedLoop:
     #: monitor distrusted the learned law then ('' when it did not): ControllerStatus.
     flying: np.ndarray = None
     monitor: np.ndarray = None
+    #: (N,) under the predictive safety filter, how each step was answered ('certified',
+    #: 'verified', 'handed_over', 'kept', 'replanned', 'lapsed', 'uncertified'; '' without a
+    #: filter or where no command was computed) and the dimensionless tension the filtered
+    #: law asked for (NaN: none): ControllerStatus.certificate, requested_tension.
+    certificate: np.ndarray = None
+    requested: np.ndarray = None
+
+    @property
+    def corrections(self):
+        """Steps the safety filter flew another tension than the filtered law's: every step
+        it did not pass (certified, or the supervisor's fallback flying: verified)."""
+        if self.certificate is None:
+            return 0
+        passed = np.isin(self.certificate, ('', 'certified', 'verified'))
+        return int(np.count_nonzero(~passed))
 
     @property
     def fallback_steps(self):
@@ -350,7 +365,10 @@ def read_runs(path, scale=None, namespace=None, sample_period=None, match=None):
     for k, run in enumerate(runs):
         counts[k].update(states=run.messages, republished_states=run.repeats,
                          conflicting_states=run.conflicting)
-        flown = {c.step: (c.flying, c.monitor) for c in controller[k] if c.status in COMPUTED}
+        # Bags recorded before the safety filter's fields decode without them.
+        flown = {c.step: (c.flying, c.monitor, getattr(c, 'certificate', ''),
+                          getattr(c, 'requested_tension', np.nan))
+                 for c in controller[k] if c.status in COMPUTED}
         loops.append(_recorded(run, applied[k], excitation[k], scale, flown, dict(
             namespace=namespace, scale=scale, run_info=run_info, run=k, runs=len(runs),
             sim_run=int(run.number), counts=counts[k], report=reader.report, h=h,
@@ -454,8 +472,11 @@ def _recorded(run, applied, excitation, scale, flown, fields):
     u = np.array([scale.tension_to_u(t) for t in tension])
     added = np.array([scale.tension_to_u(excitation.get(s, 0.0)) for s in steps.tolist()])
     conflicting = np.array([s in run.conflicts for s in steps.tolist()], dtype=bool)
-    flying, monitor = (np.array([flown.get(s, ('', ''))[i] for s in steps.tolist()],
-                                dtype=object) for i in (0, 1))
+    none = ('', '', '', np.nan)
+    flying, monitor, certificate = (np.array([flown.get(s, none)[i] for s in steps.tolist()],
+                                             dtype=object) for i in (0, 1, 2))
+    requested = np.array([scale.tension_to_u(flown.get(s, none)[3]) for s in steps.tolist()],
+                         dtype=float)
     return RecordedLoop(step=steps, tau=tau, x=x, u=u, tension=tension, excitation=added,
                         held=held, conflicting=conflicting, flying=flying, monitor=monitor,
-                        **fields)
+                        certificate=certificate, requested=requested, **fields)

@@ -156,6 +156,13 @@ class KoopmanMpc(Law):
         jacobian, b_x = self.model.local_linear_model()
         return c.T @ discrete_lqr_gain(jacobian, b_x, c @ q @ c.T, self.settings.r)[1] @ c
 
+    def swing_bound(self):
+        return self.settings.theta_max
+
+    def limit_tension(self, u_max):
+        super().limit_tension(u_max)
+        self.bound_tension(0.0, self.u_max)
+
     def bound_tension(self, low, high):
         """The QP's bounds, on the lifted input: [psi_uu(low), psi_uu(high)] (psi_ux is frozen
         at the measured state in `compute`)."""

@@ -49,12 +49,23 @@ class Law:
     Settings = LawSettings
     #: The learned model the law plans with (`model.LiftedModel`), or None.
     model = None
+    #: A learned law the predictive safety filter wraps by default (`safety_filter.backup`
+    #: 'auto'): the learned NMPC. The linear Koopman laws opt in by setting the backup.
+    filtered = False
     #: Under the runtime-assurance supervisor (`supervisor.py`): the law that flew the last
     #: step ('learned' or 'fallback'), why the monitor distrusts the learned law ('' when it
     #: does not) and how often the flying law changed; '', '' and 0 for a law flown alone.
     flying = ''
     monitor = ''
     switches = 0
+    #: Under the predictive safety filter (`safety_filter.py`): how the last step was flown
+    #: (`safety_filter.CERTIFIED`, ...), the tension the filtered law asked
+    #: for then, the steps where the command flown differed from the one asked for and the sum
+    #: of |flown - asked|; '', NaN, 0 and 0 for a law flown unfiltered.
+    certificate = ''
+    requested = math.nan
+    corrections = 0
+    correction_sum = 0.0
 
     def __init__(self, settings=None, *, h=dynamics.PAPER_STEP, u_max=dynamics.TENSION_LIMIT,
                  **overrides):
@@ -88,6 +99,13 @@ class Law:
         """The tension for the measured state x (`planar_state` checks it)."""
         raise NotImplementedError
 
+    def limit_tension(self, u_max):
+        """The loop's tension limit is now u_max (a live `max_tension`): the law plans and
+        clamps within it from its next step. A law wrapping laws passes it on."""
+        if not (math.isfinite(u_max) and u_max > 0.0):
+            raise ValueError(f'u_max must be finite and > 0, got {u_max}')
+        self.u_max = float(u_max)
+
     def bound_tension(self, low, high):
         """The tensions the law may plan with, when they are not [0, u_max] (an offset-free
         wrapper gives the felt range the actuator can reach). Laws without bounds of their own
@@ -108,6 +126,28 @@ class Law:
         law's: the supervisor's fallback flew, or the learned law in its shadow): a law with
         memory of what was flown (an observer, a plan's rate term, an actuator model) takes
         it from here; the others ignore it."""
+
+    def hand_over(self, reason):
+        """The safety filter refused this step's tension (`reason`): a law with a verified
+        fallback of its own (the supervisor) hands the plant to it from here and returns the
+        fallback's tension for this step if it planned one, else None (the filter then flies
+        its own backup this step). Laws without one: None."""
+        return None
+
+    def swing_bound(self):
+        """The bound on |theta| the law plans within [rad] (its `theta_max` setting), inf for
+        a law without one. The supervisor judges plans and the safety filter certifies
+        backups against it."""
+        return math.inf
+
+    def felt(self, command):
+        """The tension the plant feels for `command` by what the law knows of the actuator
+        (the offset-free observer's disturbance estimate); the command itself without one."""
+        return float(command)
+
+    def command_for(self, felt):
+        """The command that makes the plant feel `felt` (the inverse of `felt`)."""
+        return float(felt)
 
     def prediction(self):
         """The states the law's plan predicts from the last state it computed for (N + 1, n),
@@ -138,3 +178,53 @@ class Law:
     def diagnostics(self):
         """{name: value} a law reports about itself on /diagnostics (e.g. an estimate)."""
         return {}
+
+
+class Wrapper(Law):
+    """A law around another (`law`): the offset-free wrapper, the safety filter. Its name,
+    settings, model, h and u_max are the wrapped law's, and what it does not change it
+    forwards: the plan and its times, the plan offered and handed on, the residual, the swing
+    bound, the actuator's mapping, the hand-over and the fallback count."""
+
+    def __init__(self, law):
+        self.law = law
+        self.name, self.Settings, self.settings = law.name, law.Settings, law.settings
+        self.h, self.u_max, self.model = law.h, law.u_max, law.model
+
+    @property
+    def fallbacks(self):
+        return self.law.fallbacks
+
+    def limit_tension(self, u_max):
+        super().limit_tension(u_max)
+        self.law.limit_tension(u_max)
+
+    def swing_bound(self):
+        return self.law.swing_bound()
+
+    def felt(self, command):
+        return self.law.felt(command)
+
+    def command_for(self, felt):
+        return self.law.command_for(felt)
+
+    def hand_over(self, reason):
+        return self.law.hand_over(reason)
+
+    def prediction(self):
+        return self.law.prediction()
+
+    def prediction_times(self):
+        return self.law.prediction_times()
+
+    def guess(self):
+        return self.law.guess()
+
+    def start_from(self, guess):
+        self.law.start_from(guess)
+
+    def residual(self):
+        return self.law.residual()
+
+    def diagnostics(self):
+        return self.law.diagnostics()

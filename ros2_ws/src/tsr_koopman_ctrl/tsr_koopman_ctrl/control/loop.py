@@ -34,6 +34,9 @@ def closed_loop(controller, x0, steps, h=dynamics.PAPER_STEP, substeps=10,
     """
     if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 0:
         raise ValueError(f'closed_loop: steps must be an integer >= 0, got {steps!r}')
+    if abs(controller.h - h) > 1e-12 * h:
+        raise ValueError(f'closed_loop: {controller.name} was built for h = {controller.h:g} '
+                         f'tau, the loop steps h = {h:g}')
     if isinstance(plant, str):
         plant = plant_parameters(plant)
     elif plant is not None and not isinstance(plant, Mapping):

@@ -21,7 +21,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from tsr_koopman_ctrl.control.law import Law, planar_state, WARM_UP_STATES
+from tsr_koopman_ctrl.control.law import planar_state, WARM_UP_STATES, Wrapper
 from tsr_koopman_ctrl.control.observer import (DisturbanceObserver, koopman_predictor,
                                                physics_predictor)
 from tsr_koopman_ctrl.control.settings import build, LawSettings, setting
@@ -55,31 +55,31 @@ class ObserverSettings(LawSettings):
                                    'measurement; the disturbance is corrected either way)')
 
 
-class OffsetFree(Law):
+def make_observer(settings, predictor, h):
+    """The disturbance observer `settings` (ObserverSettings) describe, on `predictor`."""
+    s = settings
+    return DisturbanceObserver(
+        predictor, disturbance=s.disturbance, sensor_std=s.sensor_std,
+        rate_noise_std=s.rate_noise_std, position_noise_std=s.position_noise_std,
+        disturbance_walk_std=s.disturbance_walk_std,
+        initial_disturbance_std=s.initial_disturbance_std, actuator_lag_tau=s.actuator_lag,
+        h=h)
+
+
+class OffsetFree(Wrapper):
     """`law` wrapped with a disturbance observer; a law itself (its name, settings, model, h,
     u_max and fallbacks are the wrapped law's)."""
 
     def __init__(self, law, settings=None, **overrides):
-        self.law = law
-        self.name, self.Settings, self.settings = law.name, law.Settings, law.settings
-        self.h, self.u_max, self.model = law.h, law.u_max, law.model
+        super().__init__(law)
         self.observer_settings = s = build(ObserverSettings, settings, overrides)
         if s.predictor == 'model' and law.model is None:
             raise ValueError(f'observer.predictor model: {law.name} has no model')
         use_model = s.predictor == 'model' or (s.predictor == 'auto' and law.model is not None)
         predictor = (koopman_predictor(law.model) if use_model
                      else physics_predictor(h=law.h))
-        self.observer = DisturbanceObserver(
-            predictor, disturbance=s.disturbance, sensor_std=s.sensor_std,
-            rate_noise_std=s.rate_noise_std, position_noise_std=s.position_noise_std,
-            disturbance_walk_std=s.disturbance_walk_std,
-            initial_disturbance_std=s.initial_disturbance_std, actuator_lag_tau=s.actuator_lag,
-            h=law.h)
+        self.observer = make_observer(s, predictor, law.h)
         self.reset()
-
-    @property
-    def fallbacks(self):
-        return self.law.fallbacks
 
     def reset(self):
         self.law.reset()
@@ -140,17 +140,14 @@ class OffsetFree(Law):
             self.law.applied(self.observer.applied(command))
         self.last_command = float(command)
 
-    def prediction(self):
-        return self.law.prediction()
+    def felt(self, command):
+        return float(self.observer.applied(command))
 
-    def prediction_times(self):
-        return self.law.prediction_times()
+    def command_for(self, felt):
+        return float(self.observer.command_for(felt))
 
-    def guess(self):
-        return self.law.guess()
-
-    def start_from(self, guess):
-        self.law.start_from(guess)
+    def hand_over(self, reason):
+        return None       # (a law under the observer has no fallback of its own)
 
     def residual(self):
         """The observer's innovation: the measurement less its model's one-step prediction

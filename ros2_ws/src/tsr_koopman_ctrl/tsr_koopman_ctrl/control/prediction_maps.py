@@ -9,13 +9,17 @@ A map advances a batch of planar states by one sample h under tensions held over
 `interval` is what the NMPC calls: every shooting interval of the plan in one batch, each row
 advanced its own number of samples (1, 2, 3, 4, then 10 on the default grid). `MapBase` derives
 it from `step_jacobians` (the rows still running advanced together, one sample at a time);
-`PhysicsMap` overrides it with one CasADi function per interval length.
+`PhysicsMap` overrides it with one CasADi function of the whole batch (`BatchFunction`).
 
 - `PhysicsMap`: the planar equations of `tsr_sim.dynamics`, RK4 with substeps of at most
   LEAD_SUBSTEP on intervals of up to LEAD_SAMPLES samples (the grid's four lead intervals,
   where a short tether's Coriolis term is stiff) and SUBSTEP on longer ones, derivatives
   exact (CasADi's algorithmic differentiation of `tsr_sim.dynamics.symbolic_rk4`, the plant's
-  one definition; interpreted, not compiled: 0.1-0.3 ms for the 39 intervals).
+  one definition). One call per batch: the 39 intervals with their sensitivities are ~150,000
+  operations, ~0.6 ms in CasADi's virtual machine, ~0.04 ms as native code. The native build
+  (CasADi's C code, the system's C compiler, ~5 s in the background once a batch is hot or
+  the law is warmed up) is cached on disk for later processes, and computes the same numbers
+  bit for bit; without a compiler the virtual machine stays.
 - `LearnedMap`: the relifted learned model, x+ = C (A psi_x(x) + B psi_u(x, u))
   (`LiftedModel.step`), its one-step Jacobians exact (forward mode through the networks,
   `LiftedModel.step_jacobians`). `exact=False` (the law's `sensitivities: 'start'`): each
@@ -23,6 +27,14 @@ it from `step_jacobians` (the rows still running advanced together, one sample a
   sum_k J^k b (one batched Jacobian evaluation instead of one per sample; the simulated
   end states stay exact).
 """
+
+import functools
+import hashlib
+import os
+import pathlib
+import shutil
+import subprocess
+import tempfile
 
 import numpy as np
 from tsr_sim import dynamics
@@ -33,12 +45,28 @@ LEAD_SUBSTEP = 0.0025
 SUBSTEP = 0.025
 #: Intervals of up to this many samples take the lead substep.
 LEAD_SAMPLES = 4
+#: A batch function is built to native code once it has been called this often (a running
+#: loop, not a test's few steps), or when the law is warmed up (`PhysicsMap.compile`).
+HOT_CALLS = 50
+#: The C compiler's flags: -O1 compiles the default grid in ~5 s and runs as fast as -O2
+#: (~9 s); no fused multiply-add, so the native code computes what CasADi's virtual machine
+#: does, bit for bit (a run does not depend on when its build finished).
+COMPILER_FLAGS = ('-O1', '-fPIC', '-shared', '-ffp-contract=off')
+#: '0' in the environment: no native builds (CasADi's virtual machine only).
+COMPILE_VARIABLE = 'TSR_KOOPMAN_COMPILE'
 
 
 class MapBase:
     """`interval` from `step` and `step_jacobians` (subclasses give those, `n` and `h`)."""
 
     n = dynamics.PLANAR_DIM
+
+    def compile(self, wait=False):
+        """Build what the map evaluates to native code, where it can (`PhysicsMap`)."""
+
+    def native(self):
+        """Whether what the map evaluates runs as native code built by `compile`."""
+        return False
 
     def advance(self, x, u, counts):
         """Rows of x (N, n) advanced counts[i] samples under u[i], no derivatives: (N, n)."""
@@ -126,8 +154,13 @@ class PhysicsMap(MapBase):
 
     def __init__(self, h=dynamics.PAPER_STEP):
         self.h = float(h)
-        #: {(samples, rows): CasADi function (x (4, rows), u (1, rows)) -> (end, d/dx, d/du)}
+        #: {(samples, derivatives): CasADi function of one row, z = [x; u] (5,) -> end (4,),
+        #: with derivatives [end; d end / d x row by row; d end / d u] (24,)}, and the grid
+        #: functions of the cold start (`grid_function`)
         self._functions = {}
+        #: {(counts, derivatives): `BatchFunction` of rows advanced counts[i] samples each},
+        #: and the same by the counts' bytes (the lookup every step makes)
+        self._batches, self._batches_by_bytes = {}, {}
 
     def substeps(self, samples):
         """RK4 substeps over `samples` samples: LEAD_SUBSTEP long at most on an interval of
@@ -135,37 +168,78 @@ class PhysicsMap(MapBase):
         limit = LEAD_SUBSTEP if samples <= LEAD_SAMPLES else SUBSTEP
         return max(int(np.ceil(samples * self.h / limit - 1e-9)), 1)
 
-    def function(self, samples, rows):
-        key = (int(samples), int(rows))
+    def function(self, samples, derivatives):
+        """The CasADi function of one row advanced `samples` samples (`_functions`)."""
+        key = (int(samples), bool(derivatives))
         if key not in self._functions:
             import casadi as ca
 
             from tsr_sim.dynamics import symbolic_rk4     # the plant's one definition
             x, u = ca.SX.sym('x', 4), ca.SX.sym('u')
             end, _ = symbolic_rk4(x, u, samples * self.h, self.substeps(samples))
-            function = ca.Function(f'rk4_{samples}', [x, u],
-                                   [end, ca.jacobian(end, x), ca.jacobian(end, u)])
-            self._functions[key] = function.map(rows) if rows > 1 else function
+            if derivatives:
+                # Two Jacobians, not one in [x; u]: the operations the map has always run
+                end = ca.vertcat(end, ca.vec(ca.jacobian(end, x).T), ca.jacobian(end, u))
+            self._functions[key] = ca.Function(f'rk4_{key[0]}_{int(key[1])}',
+                                               [ca.vertcat(x, u)], [end])
         return self._functions[key]
 
-    def evaluate(self, samples, x, u):
-        """Rows x (m, 4), u (m,) advanced `samples` samples: (end (m, 4), a (m, 4, 4),
-        b (m, 4))."""
-        m = len(x)
-        end, a, b = self.function(samples, m)(x.T, u[None, :])
-        a = np.asarray(a).reshape(4, m, 4).transpose(1, 0, 2)
-        return np.asarray(end).T, a, np.asarray(b).T
+    def batch(self, counts, derivatives):
+        """The `BatchFunction` of rows advanced counts[i] samples: z (5, N) -> (24 or 4, N)."""
+        fast_key = (np.asarray(counts, dtype=np.int64).tobytes(), bool(derivatives))
+        if fast_key in self._batches_by_bytes:
+            return self._batches_by_bytes[fast_key]
+        key = (tuple(int(c) for c in counts), bool(derivatives))
+        if key not in self._batches:
+            import casadi as ca
+            counts = np.array(key[0])
+            rows = ca.MX.sym('z', 5, len(counts))
+            pieces, order = [], []
+            for samples in np.unique(counts):
+                columns = np.flatnonzero(counts == samples)
+                one = self.function(samples, derivatives)
+                pieces.append((one.map(len(columns)) if len(columns) > 1 else one)(
+                    rows[:, columns.tolist()]))
+                order.extend(columns)
+            out = ca.horzcat(*pieces)
+            if order != sorted(order):
+                out = out[:, np.argsort(order).tolist()]
+            name = 'tsr_batch_' + hashlib.sha256(repr((key, self.h)).encode()).hexdigest()[:12]
+            self._batches[key] = BatchFunction(ca.Function(name, [rows], [out]),
+                                               (key, self.h, LEAD_SUBSTEP, SUBSTEP))
+        self._batches_by_bytes[fast_key] = self._batches[key]
+        return self._batches[key]
+
+    def compile(self, wait=False):
+        """Start the native builds of every batch function built so far (`BatchFunction`;
+        `wait`: until they are done)."""
+        for function in self._batches.values():
+            function.compile()
+            if wait and function.build is not None:
+                function.finish(wait=True)
+
+    def native(self):
+        return bool(self._batches) and all(function.native is not None
+                                           for function in self._batches.values())
+
+    def evaluate(self, x, u, counts, derivatives=True):
+        """Rows x (m, 4), u (m,) advanced counts[i] samples: end (m, 4), with derivatives
+        (end, a (m, 4, 4), b (m, 4))."""
+        out = self.batch(counts, derivatives)(x, u)
+        if not derivatives:
+            return out
+        return out[:, :4], out[:, 4:20].reshape(-1, 4, 4), out[:, 20:]
 
     def step(self, x, u):
-        return self.step_jacobians(x, u)[0]
+        x = np.atleast_2d(x)
+        return self.evaluate(x, u, _ones(len(x)), derivatives=False)
 
     def step_jacobians(self, x, u):
-        x = np.atleast_2d(np.asarray(x, dtype=float))
-        u = np.broadcast_to(np.asarray(u, dtype=float), (len(x),))
-        return self.evaluate(1, x, u)
+        x = np.atleast_2d(x)
+        return self.evaluate(x, u, _ones(len(x)))
 
     def advance(self, x, u, counts):
-        return self.interval(x, u, counts)[0]
+        return self.evaluate(x, u, counts, derivatives=False)
 
     def rollout(self, x, u, counts):
         """`MapBase.rollout` in one CasADi call (a function per grid, built once)."""
@@ -207,11 +281,123 @@ class PhysicsMap(MapBase):
         return self._functions[key]
 
     def interval(self, x, u, counts, exact=True):
-        """The rows of each length in one mapped call; exact whatever `exact` says."""
-        x, u = np.atleast_2d(np.asarray(x, dtype=float)), np.asarray(u, dtype=float)
-        counts = np.asarray(counts, dtype=int)
-        end, a, b = np.empty_like(x), np.empty((len(x), 4, 4)), np.empty_like(x)
-        for samples in np.unique(counts):
-            rows = np.flatnonzero(counts == samples)
-            end[rows], a[rows], b[rows] = self.evaluate(samples, x[rows], u[rows])
-        return end, a, b
+        """Every row in one batch call (`batch`); exact whatever `exact` says."""
+        return self.evaluate(x, u, counts)
+
+
+class BatchFunction:
+    """A CasADi function evaluated by CasADi's virtual machine until its native build is ready,
+    then by that: the same operations, 5-10x faster. The build (CasADi's C code, the system's
+    C compiler) runs in the background and is kept in a cache (`cache_path`) for every later
+    process; without a compiler, or with TSR_KOOPMAN_COMPILE=0, the virtual machine stays."""
+
+    def __init__(self, function, description):
+        self.function = function
+        #: The rows' inputs [x, u] (N, 5) and outputs (N, 4 or 24), bound to the evaluation
+        #: (CasADi's buffers: no conversion to and from its matrices; column-major (5, N) and
+        #: (24, N) to CasADi); `evaluate`: by the native build once loaded.
+        rows = function.size2_in(0)
+        self.arguments = np.zeros((rows, function.size1_in(0)))
+        self.results = np.zeros((rows, function.size1_out(0)))
+        self.evaluate, self.bound = self.bind(function)
+        self.native = None
+        self.calls = 0
+        #: The compiler at work (subprocess.Popen), or None.
+        self.build = None
+        self.path = cache_path(function.name(), description)
+        if self.path is not None and self.path.exists():
+            self.load()
+
+    def __call__(self, x, u):
+        """The outputs (N, 4 or 24) of rows x (N, 4) under u (N,)."""
+        if self.native is None:
+            self.calls += 1
+            if self.build is not None:
+                self.finish()
+            elif self.calls == HOT_CALLS:
+                self.compile()
+        self.arguments[:, :4] = x
+        self.arguments[:, 4] = u
+        self.evaluate()
+        return self.results.copy()
+
+    def bind(self, function):
+        """(evaluate, the buffer that keeps the binding alive) of `function` on our arrays."""
+        buffer, evaluate = function.buffer()
+        buffer.set_arg(0, memoryview(self.arguments.reshape(-1)))
+        buffer.set_res(0, memoryview(self.results.reshape(-1)))
+        return evaluate, buffer
+
+    def compile(self):
+        """Start the native build (C code now, ~0.1 s; the compiler in the background)."""
+        if self.native is not None or self.build is not None or self.path is None:
+            return
+        compiler = shutil.which(os.environ.get('CC', 'cc'))
+        if compiler is None:
+            self.path = None
+            return
+        import casadi as ca
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            directory = tempfile.mkdtemp(prefix='build_', dir=self.path.parent)
+            source = os.path.join(directory, 'batch.c')
+            generator = ca.CodeGenerator('batch.c', {'with_header': False})
+            generator.add(self.function)
+            generator.generate(directory + os.sep)
+            # Compile, move into the cache (atomic: other processes may read it), clean up:
+            # a build this process leaves running still lands for the next one.
+            script = ('cc="$1" built="$2" kept="$3" directory="$4"; shift 4; '
+                      '"$cc" "$@" -o "$built" && mv "$built" "$kept"; rm -rf "$directory"')
+            self.build = subprocess.Popen(
+                ['sh', '-c', script, 'sh', compiler, os.path.join(directory, 'batch.so'),
+                 str(self.path), directory, *COMPILER_FLAGS, source],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                start_new_session=True)
+        except (OSError, RuntimeError):
+            self.path = None      # (an unwritable cache: the virtual machine stays)
+
+    def finish(self, wait=False):
+        """Take the native build once the compiler is done (`wait`: wait for it)."""
+        if wait:
+            self.build.wait()
+        if self.build.poll() is None:
+            return
+        self.build = None
+        if self.path.exists():
+            self.load()
+        if self.native is None:
+            self.path = None      # (a failed build is not tried again in this process)
+
+    def load(self):
+        import casadi as ca
+        try:
+            self.native = ca.external(self.function.name(), str(self.path))
+        except RuntimeError:
+            return
+        self.evaluate, self.bound = self.bind(self.native)
+
+
+@functools.cache
+def _ones(rows):
+    """Counts of one sample for `rows` rows (read only: shared)."""
+    ones = np.ones(rows, dtype=np.int64)
+    ones.flags.writeable = False
+    return ones
+
+
+@functools.cache
+def _sources():
+    return b''.join(pathlib.Path(module).read_bytes() for module in (dynamics.__file__, __file__))
+
+
+def cache_path(name, description):
+    """Where the native build of the batch function `name` is kept: a file named by a digest
+    of what its code is generated from (`description`, CasADi's version, the plant's equations
+    and this module), so an edit of either builds anew. None: no native builds."""
+    if os.environ.get(COMPILE_VARIABLE, '1') == '0':
+        return None
+    import casadi as ca
+    digest = hashlib.sha256(repr((description, ca.__version__, COMPILER_FLAGS)).encode())
+    digest.update(_sources())
+    home = os.environ.get('XDG_CACHE_HOME') or os.path.join(os.path.expanduser('~'), '.cache')
+    return pathlib.Path(home, 'tsr_koopman', 'casadi', f'{name}_{digest.hexdigest()[:16]}.so')

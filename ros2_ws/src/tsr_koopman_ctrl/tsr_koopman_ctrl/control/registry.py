@@ -9,6 +9,7 @@ from tsr_koopman_ctrl.control.koopman_mpc import KoopmanMpc
 from tsr_koopman_ctrl.control.nmpc import KoopmanNmpc, PhysicsNmpc
 from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
+from tsr_koopman_ctrl.control.safety_filter import SafetyFilter, SafetyFilterSettings
 from tsr_koopman_ctrl.control.settings import build, LawSettings
 from tsr_koopman_ctrl.control.supervisor import Supervisor, SupervisorSettings
 
@@ -19,7 +20,7 @@ CONTROLLERS = {law.name: law for law in (LinearisedLqr, FractionalOrderPd, Koopm
 #: The controller's settings sections that are not laws: the observer (offset-free control)
 #: and the excitation. The node declares them, deploy and its presets take them.
 NODE_SECTIONS = {'observer': ObserverSettings, 'excitation': ExcitationSettings,
-                 'supervisor': SupervisorSettings}
+                 'supervisor': SupervisorSettings, 'safety_filter': SafetyFilterSettings}
 
 
 def settings_sections():
@@ -41,24 +42,36 @@ def law_class(name):
         raise ValueError(f'unknown law {name!r}; choose from {sorted(CONTROLLERS)}')
 
 
-def make_controller(name, settings=None, observer=None, supervisor=None, **overrides):
+def make_controller(name, settings=None, observer=None, supervisor=None, safety=None,
+                    **overrides):
     """Build the law `name`: its settings (an instance of its Settings class, or the defaults)
     with `overrides` (settings fields, or the loop's h and u_max) applied, wrapped for
     offset-free control unless `observer` (ObserverSettings, a dict of them, or the defaults;
     'none' for the bare law) says disturbance 'none'. A learned law (one with a model) flies
     under the runtime-assurance supervisor, its verified fallback wrapped the same way,
     unless `supervisor` (SupervisorSettings, a dict of them, or the defaults) says fallback
-    'none' (or is 'none')."""
+    'none' (or is 'none'), and under the predictive safety filter, its backups planned by the
+    verified law, unless `safety` (SafetyFilterSettings, a dict of them, or the defaults)
+    says backup 'none' (or is 'none')."""
     law = law_class(name)(settings, **overrides)
     observer = section_settings(ObserverSettings, observer, 'disturbance')
     supervisor = section_settings(SupervisorSettings, supervisor, 'fallback')
+    safety = section_settings(SafetyFilterSettings, safety, 'backup')
 
     def offset_free(law):
         return law if observer.disturbance == 'none' else OffsetFree(law, observer)
-    if law.model is None or supervisor.fallback == 'none':
+    if law.model is None:
         return offset_free(law)
-    return Supervisor(offset_free(law), offset_free(fallback_law(law, supervisor.fallback)),
-                      supervisor)
+    flown = (offset_free(law) if supervisor.fallback == 'none' else
+             Supervisor(offset_free(law), offset_free(fallback_law(law, supervisor.fallback)),
+                        supervisor))
+    backup = safety.backup
+    if backup == 'auto':
+        backup = 'physics_nmpc' if law.filtered else 'none'
+    if backup == 'none':
+        return flown
+    verified = None if backup == 'hold' else lambda: fallback_law(law, backup)
+    return SafetyFilter(flown, verified, safety)
 
 
 def section_settings(settings_class, value, off_field):

@@ -47,7 +47,7 @@ from tsr_koopman_ctrl.control.settings import build, LawSettings, setting
 #: Which law flew a step (ControllerStatus.flying, /diagnostics).
 LEARNED, FALLBACK = 'learned', 'fallback'
 #: Why the monitor distrusts the learned law (ControllerStatus.monitor; '' when it trusts it).
-REASONS = ('fallback', 'bound', 'envelope', 'prediction')
+REASONS = ('fallback', 'bound', 'envelope', 'prediction', 'certificate')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,7 +109,7 @@ class Supervisor(Law):
             low, high = (np.asarray(v, dtype=float) for v in self.model.envelope)
             widen = self.supervisor_settings.envelope_margin * (high - low)
             self.envelope = (low - widen, high + widen)
-        self.theta_bound = getattr(learned.settings, 'theta_max', np.inf)
+        self.theta_bound = learned.swing_bound()
         self.reset()
 
     def reset(self):
@@ -125,6 +125,7 @@ class Supervisor(Law):
         self.flown = None            # steps the learned law has flown since it took back
         self.armed = 0               # steps the fallback still plans in the shadow
         self.steps = 0
+        self.planned = None          # the fallback's (tension, fell back) this step, or None
         self.fallbacks = 0           # steps where the law that flew fell back
         self.reasons = {reason: 0 for reason in REASONS}
 
@@ -179,7 +180,24 @@ class Supervisor(Law):
         tension, fell_back = learned if self.flying == LEARNED else fallback
         self.fallbacks += fell_back
         self.steps += 1
+        self.planned = fallback     # this step's fallback tension, for `hand_over`
         return tension
+
+    def hand_over(self, reason):
+        """The safety filter refused the learned law's tension (`reason`, 'certificate'):
+        the fallback flies from here, as after the monitor's distrust (the same hysteresis
+        and backoff before the learned law takes back); its tension for this step if it
+        planned this step (armed), else None."""
+        if self.flying != LEARNED:
+            return None
+        s = self.supervisor_settings
+        self.monitor = reason
+        self.reasons[reason] += 1
+        if self.flown is not None and self.flown < self.takeback:
+            self.takeback = min(2 * self.takeback, s.takeback_backoff * s.takeback_steps)
+        self.switch(FALLBACK)
+        self.armed = s.arm_steps
+        return None if self.planned is None else self.planned[0]
 
     @staticmethod
     def run(law, x):
@@ -256,6 +274,26 @@ class Supervisor(Law):
 
     def prediction(self):
         return (self.learned if self.flying == LEARNED else self.fallback).prediction()
+
+    def guess(self):
+        return (self.learned if self.flying == LEARNED else self.fallback).guess()
+
+    def swing_bound(self):
+        return self.learned.swing_bound()
+
+    def limit_tension(self, u_max):
+        super().limit_tension(u_max)
+        self.learned.limit_tension(u_max)
+        self.fallback.limit_tension(u_max)
+
+    # The tension felt by the fallback's observer: it predicts with the exact equations, as
+    # the safety filter's certificates do, where the learned law's predicts with its model
+    # (whose estimate drifts where the model is wrong).
+    def felt(self, command):
+        return self.fallback.felt(command)
+
+    def command_for(self, felt):
+        return self.fallback.command_for(felt)
 
     def residual(self):
         return self.learned.residual()

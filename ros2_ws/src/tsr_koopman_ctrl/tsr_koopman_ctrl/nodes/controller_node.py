@@ -280,7 +280,9 @@ class ControllerNode(LifecycleNode):
         self.scale = Scale(**{name: self.get_parameter(name).value
                               for name in SCALE_PARAMETERS})
         self.limiter = TensionLimiter(self.scale.tension_to_u(self.max_tension))
-        self.law = make_controller(self.law_name, settings, observer, supervisor,
+        safety = sections['safety_filter'](
+            **settings_values(self, 'safety_filter', sections['safety_filter']))
+        self.law = make_controller(self.law_name, settings, observer, supervisor, safety,
                                    u_max=self.scale.tension_to_u(self.max_tension))
         self.law.warm_up()
         self.step = ControlStep(self.law, self.limiter, excitation)
@@ -346,6 +348,7 @@ class ControllerNode(LifecycleNode):
         self.max_tension = value
         if self.limiter is not None:
             self.limiter.u_max = self.scale.tension_to_u(value)
+            self.law.limit_tension(self.limiter.u_max)    # its plans, its filter's backups
 
     def set_safe_tension(self, value):
         self.safe_tension = value
@@ -429,7 +432,8 @@ class ControllerNode(LifecycleNode):
         self.last_answer = (key, command)
         self.counts['commands'] += 1
         self.publish_status(msg.step, stamp, int(result.outcome), result.compute_seconds,
-                            tension)
+                            tension, self.scale.u_to_tension(self.law.requested),
+                            self.law.certificate)
 
     def refuse(self, msg, x, outcome):
         """A state the law must not see (not finite, or no TSR state): counted, no command;
@@ -455,13 +459,16 @@ class ControllerNode(LifecycleNode):
         self.run, self.last_step, self.last_answer = run, -1, None
         self.intervals.clear()
 
-    def publish_status(self, step, stamp, status, compute_time=math.nan, tension=math.nan):
+    def publish_status(self, step, stamp, status, compute_time=math.nan, tension=math.nan,
+                       requested=math.nan, certificate=''):
         law = self.law
         msg = ControllerStatus(step=int(step), status=int(status),
                                controller=self.law_name,
                                flying=law.flying if law else '',
                                monitor=law.monitor if law else '',
+                               certificate=certificate,
                                compute_time=float(compute_time), tension=float(tension),
+                               requested_tension=float(requested),
                                commands=int(self.counts['commands']),
                                clamped=int(self.limiter.clamped if self.limiter else 0),
                                solver_fallbacks=int(law.fallbacks if law else 0),
@@ -470,7 +477,8 @@ class ControllerNode(LifecycleNode):
                                refused_states=int(self.counts['refused_states']),
                                dropped_states=int(self.counts['dropped_states']),
                                overruns=int(self.counts['overruns']),
-                               supervisor_switches=int(law.switches if law else 0))
+                               supervisor_switches=int(law.switches if law else 0),
+                               safety_corrections=int(law.corrections if law else 0))
         msg.header.stamp = stamp
         self.status_pub.publish(msg)
 

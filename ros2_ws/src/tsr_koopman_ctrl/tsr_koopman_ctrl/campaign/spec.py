@@ -1,0 +1,425 @@
+"""A campaign's spec: what varies from run to run and how, checked whole before any run starts.
+
+    runs: 200                 # dispersed cases; every law flies each of them (paired)
+    steps: 1500               # of h = 0.01 tau
+    seed: 7                   # a run's values come from (seed, run) alone
+    swing_limit: 0.4          # optional: a run swinging past it fails
+    start:                    # a box, one value drawn per component ...
+      low: [-0.05, -0.1, -0.995, 0.3]
+      high: [0.05, 0.1, -0.98, 0.7]
+      distribution: uniform   # or normal (truncated to the box, sigma a quarter of it), or
+                              # one per component
+    # start: [[0, 0, -0.99, 0.5], [0, 0, -0.9, 0.3]]   # ... or a list: run n flies n mod len
+    # start: [comparison, held_out]                     # ... or named sets (NAMED_STARTS)
+    plant:                    # default: the nominal plant
+      variant: heavy_robot    # a named plant variant (tsr_sim/config/plants) to start from
+      actuator_gain: {low: 0.8, high: 1.2}               # dispersed, as a start component
+      actuator_lag: {low: 0.0, high: 0.05, distribution: normal}
+      sensor_noise_std: 0.001                            # fixed; every component's std
+    laws:
+      - koopman_nmpc
+      - {law: koopman_nmpc, label: nmpc_bare, set: [supervisor.fallback=none]}
+    set: [observer.disturbance=none]    # as deploy --set, for every law it applies to
+
+Plant parameters are the simulator's (`tsr_sim.plant.PLANT_PARAMETERS`, their declared ranges,
+and the units' `mass`); `sensor_noise_std` takes one std for every component, `initial_beta`
+(with `out_of_plane: true`) the start's beta (beta' 0). Laws and settings are the registry's.
+Every mistake is one ValueError line.
+"""
+
+import dataclasses
+import difflib
+import math
+import numbers
+
+import numpy as np
+from tsr_sim import dynamics
+from tsr_sim.plant import (check_plant_parameter_names, check_plant_parameter_values,
+                           PLANT_PARAMETERS, plant_parameters, SCALE_PARAMETERS)
+
+from tsr_koopman_ctrl.control.registry import CONTROLLERS, law_class, NODE_SECTIONS, \
+    settings_class
+from tsr_koopman_ctrl.control.settings import build, parse_assignments
+from tsr_koopman_ctrl.evaluation.starts import COMPARISON_STARTS, HELD_OUT_STARTS, PAPER_START
+
+DISTRIBUTIONS = ('uniform', 'normal')
+#: Start sets a spec may name (`start: [comparison, held_out]`): the comparison's own.
+NAMED_STARTS = {'comparison': COMPARISON_STARTS, 'held_out': HELD_OUT_STARTS}
+#: A normal dispersion's box is +-2 sigma around its middle (truncated to the box).
+NORMAL_SIGMAS = 2.0
+#: Plant parameters a campaign sets itself: the start, the length of a run, the sample period
+#: the laws are built for, the noise seed (from the campaign's seed and the run's number).
+OWN_PARAMETERS = ('initial_state', 'max_steps', 'step', 'seed')
+#: Plant parameters given as one number in a spec and as the simulator's vector.
+SCALAR_FORMS = ('sensor_noise_std', 'initial_beta')
+DEFAULT_RUNS = 100
+DEFAULT_STEPS = 1500
+SPEC_KEYS = ('runs', 'steps', 'seed', 'swing_limit', 'start', 'plant', 'laws', 'set')
+LAW_KEYS = ('law', 'label', 'set', 'settings')
+
+
+def _refuse_unknown(keys, known, where):
+    for key in keys:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), known, n=1)
+            hint = f' (did you mean {close[0]!r}?)' if close else ''
+            raise ValueError(f'{where}: unknown key {key!r}{hint}; keys: {", ".join(known)}')
+
+
+def _number(value, where):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(
+            value):
+        raise ValueError(f'{where} must be a finite number, got {value!r}')
+    return float(value)
+
+
+def _count(value, where, low):
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+        raise ValueError(f'{where} must be an integer >= {low}, got {value!r}')
+    return int(value)
+
+
+@dataclasses.dataclass(frozen=True)
+class Dispersion:
+    """One dispersed value in [low, high]: uniform, or normal about the middle (sigma a quarter
+    of the width) truncated to [low, high]; drawn from one uniform number, so that the
+    distribution of one value never changes the draws of the others."""
+
+    low: float
+    high: float
+    distribution: str = 'uniform'
+
+    @classmethod
+    def parse(cls, value, where):
+        if not isinstance(value, dict):
+            raise ValueError(f'{where} must be a number or {{low, high, distribution}}, got '
+                             f'{value!r}')
+        _refuse_unknown(value, ('low', 'high', 'distribution'), where)
+        if 'low' not in value or 'high' not in value:
+            raise ValueError(f'{where} needs low and high')
+        return cls(_number(value['low'], f'{where}.low'),
+                   _number(value['high'], f'{where}.high'),
+                   value.get('distribution', 'uniform')).checked(where)
+
+    def checked(self, where):
+        if not self.low < self.high:
+            raise ValueError(f'{where}: empty range, low {self.low:g} must be < high '
+                             f'{self.high:g}')
+        if self.distribution not in DISTRIBUTIONS:
+            raise ValueError(f'{where}: distribution must be one of {list(DISTRIBUTIONS)}, '
+                             f'got {self.distribution!r}')
+        return self
+
+    def draw(self, uniform):
+        """The value at the quantile `uniform` in [0, 1)."""
+        if self.distribution == 'uniform':
+            return float(self.low + uniform * (self.high - self.low))
+        from scipy.stats import truncnorm
+        middle, sigma = (self.low + self.high) / 2, (self.high - self.low) / (2 * NORMAL_SIGMAS)
+        return float(truncnorm.ppf(uniform, -NORMAL_SIGMAS, NORMAL_SIGMAS, loc=middle,
+                                   scale=sigma))
+
+    def as_dict(self):
+        return {'low': self.low, 'high': self.high, 'distribution': self.distribution}
+
+
+@dataclasses.dataclass(frozen=True)
+class LawEntry:
+    """A law flown on every case: its registry name, the label its rows carry, its settings
+    {section: {setting: value}} (the law's own section and NODE_SECTIONS)."""
+
+    law: str
+    label: str
+    settings: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+    """What one run flies: its number, its noise seed, the dimensionless start, the plant
+    parameters (`closed_loop(plant=...)`) and the dispersed values by name."""
+
+    run: int
+    seed: int
+    x0: tuple
+    plant: dict
+    dispersed: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class Campaign:
+    """A checked spec (module docstring); `Campaign.parse(mapping)` or `load_spec(path)`."""
+
+    runs: int
+    steps: int
+    seed: int
+    laws: tuple
+    swing_limit: float = None
+    start_box: tuple = None         # (Dispersion,) * 4, or None with start_list
+    start_list: tuple = ((PAPER_START),)
+    variant: str = None
+    plant_fixed: dict = dataclasses.field(default_factory=dict)
+    plant_dispersed: dict = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def parse(cls, spec, where='spec'):
+        if not isinstance(spec, dict):
+            raise ValueError(f'{where}: a spec is a mapping of {", ".join(SPEC_KEYS)}')
+        _refuse_unknown(spec, SPEC_KEYS, where)
+        start_box, start_list = _parse_start(spec.get('start'), f'{where}: start')
+        default_runs = DEFAULT_RUNS if start_box else len(start_list)
+        runs = _count(spec.get('runs', default_runs), f'{where}: runs', 1)
+        steps = _count(spec.get('steps', DEFAULT_STEPS), f'{where}: steps', 1)
+        seed = _count(spec.get('seed', 0), f'{where}: seed', 0)
+        if seed > 2 ** 32 - 1:
+            raise ValueError(f'{where}: seed must be < 2**32, got {seed}')
+        swing_limit = spec.get('swing_limit')
+        if swing_limit is not None:
+            swing_limit = _number(swing_limit, f'{where}: swing_limit')
+            if swing_limit <= 0:
+                raise ValueError(f'{where}: swing_limit must be > 0, got {swing_limit:g}')
+        laws = _parse_laws(spec.get('laws'), spec.get('set', []), where)
+        variant, fixed, dispersed = _parse_plant(spec.get('plant') or {}, f'{where}: plant')
+        return cls(runs, steps, seed, laws, swing_limit, start_box, start_list, variant, fixed,
+                   dispersed)
+
+    def as_dict(self):
+        """The spec in its canonical form (every default explicit): what <out>/spec.yaml holds
+        and `parse` reads back to the same campaign."""
+        start = ({'low': [d.low for d in self.start_box],
+                  'high': [d.high for d in self.start_box],
+                  'distribution': [d.distribution for d in self.start_box]}
+                 if self.start_box else [list(x) for x in self.start_list])
+        plant = {**({'variant': self.variant} if self.variant else {}), **self.plant_fixed,
+                 **{name: d.as_dict() for name, d in self.plant_dispersed.items()}}
+        return {'runs': self.runs, 'steps': self.steps, 'seed': self.seed,
+                'swing_limit': self.swing_limit, 'start': start, 'plant': plant,
+                'laws': [{'law': e.law, 'label': e.label, 'settings': _plain(e.settings)}
+                         for e in self.laws]}
+
+    def law(self, label):
+        for entry in self.laws:
+            if entry.label == label:
+                return entry
+        raise ValueError(f'no law {label!r} in this campaign; laws: '
+                         f'{", ".join(e.label for e in self.laws)}')
+
+    def pairs(self):
+        """Every (run, law label) the campaign flies."""
+        return [(run, entry.label) for run in range(self.runs) for entry in self.laws]
+
+    def dispersed_names(self):
+        """The names of the values that vary from run to run (their rows' columns)."""
+        return list(self.plant_dispersed)
+
+    def case(self, run):
+        """Run `run`'s case, from (seed, run) alone (numpy SeedSequence): the same whatever
+        the workers, their number or the order runs finish."""
+        rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(run,)))
+        noise_seed = int(rng.integers(PLANT_PARAMETERS['seed'][3] + 1))
+        if self.start_box:
+            x0 = tuple(d.draw(float(u)) for d, u in zip(self.start_box, rng.random(len(
+                self.start_box))))
+        else:
+            x0 = tuple(self.start_list[run % len(self.start_list)])
+        dispersed = {name: d.draw(float(u)) for (name, d), u in zip(
+            self.plant_dispersed.items(), rng.random(len(self.plant_dispersed)))}
+        plant = dict(plant_parameters(self.variant) if self.variant else {})
+        plant.update(self.plant_fixed)
+        plant.update(dispersed)
+        plant = simulator_form(plant)
+        plant['seed'] = noise_seed
+        return Case(run, noise_seed, x0, plant, dispersed)
+
+
+def simulator_form(plant):
+    """Plant parameters as the simulator takes them: the scalar forms (SCALAR_FORMS) made the
+    vectors they stand for."""
+    plant = dict(plant)
+    dim = dynamics.SPATIAL_DIM if plant.get('out_of_plane') else dynamics.PLANAR_DIM
+    std = plant.get('sensor_noise_std')
+    if isinstance(std, numbers.Real):
+        plant['sensor_noise_std'] = [float(std)] * dim
+    beta = plant.get('initial_beta')
+    if isinstance(beta, numbers.Real):
+        plant['initial_beta'] = [float(beta), 0.0]
+    return plant
+
+
+def _plain(value):
+    """Tuples as lists, for YAML."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _parse_start(start, where):
+    if start is None:
+        return None, (tuple(PAPER_START),)
+    if isinstance(start, str):
+        start = [start]
+    if isinstance(start, list) and start and all(isinstance(v, str) for v in start):
+        for name in start:
+            if name not in NAMED_STARTS:
+                raise ValueError(f'{where}: no start set {name!r}; named sets: '
+                                 f'{", ".join(NAMED_STARTS)}')
+        return None, tuple(x0 for name in start for x0 in NAMED_STARTS[name])
+    if isinstance(start, dict):
+        _refuse_unknown(start, ('low', 'high', 'distribution'), where)
+        low, high = start.get('low'), start.get('high')
+        distribution = start.get('distribution', 'uniform')
+        size = dynamics.PLANAR_DIM
+        if isinstance(distribution, str):
+            distribution = [distribution] * size
+        for name, value in (('low', low), ('high', high), ('distribution', distribution)):
+            if not isinstance(value, list) or len(value) != size:
+                raise ValueError(f'{where}.{name} needs {size} values (theta, theta\', l - 1, '
+                                 f"l'), got {value!r}")
+        box = tuple(Dispersion(_number(lo, f'{where}.low'), _number(hi, f'{where}.high'),
+                               kind).checked(f'{where} component {i}')
+                    for i, (lo, hi, kind) in enumerate(zip(low, high, distribution)))
+        return box, None
+    if isinstance(start, list) and start and all(isinstance(v, numbers.Real) for v in start):
+        start = [start]
+    if not isinstance(start, list) or not start:
+        raise ValueError(f'{where} must be a box {{low, high, distribution}} or a list of '
+                         f'starts, got {start!r}')
+    starts = []
+    for i, x0 in enumerate(start):
+        if not isinstance(x0, list) or len(x0) != dynamics.PLANAR_DIM:
+            raise ValueError(f'{where} {i} needs {dynamics.PLANAR_DIM} values, got {x0!r}')
+        x0 = tuple(_number(v, f'{where} {i}') for v in x0)
+        if not dynamics.in_domain(np.array(x0)):
+            raise ValueError(f'{where} {i} {list(x0)} is outside the model domain (l > 0)')
+        starts.append(x0)
+    return None, tuple(starts)
+
+
+def _parse_laws(laws, common, where):
+    if laws is None or laws == []:
+        raise ValueError(f'{where}: no law to fly (laws: one or more of {sorted(CONTROLLERS)})')
+    if isinstance(laws, str):
+        laws = [laws]
+    if not isinstance(laws, list):
+        raise ValueError(f'{where}: laws must be a list, got {laws!r}')
+    common = _assignments(common, f'{where}: set')
+    names = {entry if isinstance(entry, str) else entry.get('law')
+             for entry in laws if isinstance(entry, (str, dict))}
+    for section in common:
+        if section not in NODE_SECTIONS and section not in names:
+            settings_class(section)        # an unknown section is one line
+            raise ValueError(f'{where}: set {section}.*: {section} is not among the laws '
+                             f'flown ({", ".join(sorted(n for n in names if n))})')
+    entries = []
+    for entry in laws:
+        if isinstance(entry, str):
+            entry = {'law': entry}
+        if not isinstance(entry, dict) or 'law' not in entry:
+            raise ValueError(f'{where}: a law is a name or {{law, label, set, settings}}, got '
+                             f'{entry!r}')
+        _refuse_unknown(entry, LAW_KEYS, f'{where}: law {entry["law"]!r}')
+        name = entry['law']
+        if not isinstance(name, str):
+            raise ValueError(f'{where}: a law name is a string, got {name!r}')
+        law_class(name)                    # an unknown law is one line
+        label = entry.get('label', name)
+        if not isinstance(label, str) or not label.isidentifier():
+            raise ValueError(f'{where}: label {label!r} must be a name (letters, digits, _)')
+        settings = {section: dict(values) for section, values in common.items()
+                    if section in NODE_SECTIONS or section == name}
+        own = entry.get('settings') or {}
+        if not isinstance(own, dict):
+            raise ValueError(f'{where}: law {label}: settings must be a mapping of sections')
+        own = {section: dict(values or {}) for section, values in own.items()}
+        for section, values in [*own.items(),
+                                *_assignments(entry.get('set', []),
+                                              f'{where}: law {label}: set').items()]:
+            if section not in NODE_SECTIONS and section != name:
+                raise ValueError(f'{where}: law {label}: {section!r} is not a section of '
+                                 f'{name} ({", ".join([name, *NODE_SECTIONS])})')
+            settings.setdefault(section, {}).update(values)
+        for section, values in settings.items():
+            try:
+                checked = build(settings_class(section), None, values)
+            except (ValueError, TypeError) as error:
+                raise ValueError(f'{where}: law {label}: {error}') from None
+            settings[section] = {key: getattr(checked, key) for key in values}
+        entries.append(LawEntry(name, label, settings))
+    labels = [e.label for e in entries]
+    if len(set(labels)) != len(labels):
+        raise ValueError(f'{where}: two laws share a label ({", ".join(labels)}): give each '
+                         'its own label')
+    return tuple(entries)
+
+
+def _assignments(assignments, where):
+    if isinstance(assignments, str):
+        assignments = [assignments]
+    if not isinstance(assignments, list) or not all(isinstance(a, str) for a in assignments):
+        raise ValueError(f'{where} takes SECTION.SETTING=VALUE strings, got {assignments!r}')
+    return parse_assignments(assignments)
+
+
+def _parse_plant(plant, where):
+    if not isinstance(plant, dict):
+        raise ValueError(f'{where} must be a mapping of plant parameters, got {plant!r}')
+    plant = dict(plant)
+    variant = plant.pop('variant', None)
+    base = {}
+    if variant is not None:
+        if not isinstance(variant, str):
+            raise ValueError(f'{where}.variant must be a plant variant name, got {variant!r}')
+        base = plant_parameters(variant)
+    check_plant_parameter_names(plant, where)
+    for name in plant:
+        if name in OWN_PARAMETERS:
+            raise ValueError(f'{where}: {name} is set by the campaign (the start, steps, the '
+                             "loop's period, the run's noise seed), not by the plant")
+    fixed = {k: v for k, v in plant.items() if not isinstance(v, dict)}
+    dispersed = {}
+    for name, value in plant.items():
+        if not isinstance(value, dict):
+            continue
+        spec = PLANT_PARAMETERS.get(name)
+        numeric = name in SCALE_PARAMETERS or name in SCALAR_FORMS or (
+            spec is not None and spec[2] is not None and not isinstance(spec[0], bool))
+        if not numeric:
+            raise ValueError(f'{where}: {name} cannot be dispersed (a number with a declared '
+                             'range can)')
+        dispersed[name] = Dispersion.parse(value, f'{where}.{name}')
+    # Both ends of every range, and the fixed values, as the simulator would check them.
+    for end in ('low', 'high'):
+        values = {**base, **fixed, **{n: getattr(d, end) for n, d in dispersed.items()}}
+        check_plant_parameter_values(simulator_form(values), where)
+    if 'initial_beta' in {**fixed, **dispersed} and not {**base, **fixed}.get('out_of_plane'):
+        raise ValueError(f'{where}: initial_beta needs out_of_plane: true')
+    return variant, fixed, dispersed
+
+
+def load_spec(path=None, **overrides):
+    """The campaign of a YAML spec file (or of none: the defaults), with `overrides` (spec keys,
+    as the command's flags give them: runs, steps, seed, laws, set, swing_limit, plant) on
+    top; `set` adds to the file's."""
+    spec = {}
+    if path is not None:
+        import yaml
+        try:
+            with open(path) as stream:
+                spec = yaml.safe_load(stream) or {}
+        except OSError as error:
+            raise ValueError(f'{path}: {error.strerror}') from None
+        except yaml.YAMLError:
+            raise ValueError(f'{path}: not valid YAML') from None
+        if not isinstance(spec, dict):
+            raise ValueError(f'{path}: a spec is a mapping of {", ".join(SPEC_KEYS)}')
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        if key == 'set':
+            spec['set'] = [*(spec.get('set') or []), *value]
+        elif key == 'variant':
+            spec['plant'] = {**(spec.get('plant') or {}), 'variant': value}
+        else:
+            spec[key] = value
+    return Campaign.parse(spec, where=path or 'spec')

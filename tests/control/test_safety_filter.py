@@ -1,0 +1,172 @@
+"""The predictive safety filter (control/safety_filter.py), ROS-free: its terminal set against
+the reel hold flown on the plant, scripted laws it must pass or correct, and the learned NMPC
+from a start where the supervisor alone loses the robot."""
+
+import math
+
+import numpy as np
+import pytest
+from tsr_sim import dynamics
+
+from tsr_koopman_ctrl.control import closed_loop, make_controller
+from tsr_koopman_ctrl.control.law import Law
+from tsr_koopman_ctrl.control.safety_filter import (Bounds, CERTIFIED, HANDED, KEPT, LAPSED,
+                                                    REPLANNED, SafetyFilter, terminal,
+                                                    UNCERTIFIED, VERIFIED)
+from tsr_koopman_ctrl.control.supervisor import Supervisor
+
+#: A start next to the paper's from which the supervised learned NMPC under a 0.4-rad swing
+#: bound tumbles (its monitor switches after the state has left the fallback's reach).
+LOST_BY_THE_SUPERVISOR = (0.1, 0.0, -0.99, 0.5)
+
+
+class Constant(Law):
+    """A law asking for one tension, whatever the state, planning within a swing bound."""
+
+    name = 'constant'
+
+    def __init__(self, tension, bound=math.inf, **kwargs):
+        super().__init__(**kwargs)
+        self.tension, self.bound = tension, bound
+
+    def compute(self, x):
+        return self.tension
+
+    def swing_bound(self):
+        return self.bound
+
+
+def verified():
+    return make_controller('physics_nmpc', theta_max=0.4, observer='none')
+
+
+def fly(law, x0, steps, substeps=10):
+    """[(state, command, certificate)] of `law` flown on the planar equations, integrated as
+    the simulator's plant does (10 RK4 substeps a sample) unless `substeps` says otherwise."""
+    x, flown = np.array(x0, dtype=float), []
+    law.reset()
+    for _ in range(steps):
+        u = law.compute(x)
+        law.applied(u)
+        flown.append((x, u, law.certificate))
+        x = dynamics.step(x, u, dynamics.PAPER_STEP, substeps)
+        if not dynamics.in_domain(x):
+            break
+    return flown
+
+
+def test_the_terminal_set_is_held_by_the_reel_hold_on_the_plant():
+    """Every state the filter calls terminal, flown under the plant's own reel hold
+    (`dynamics.hold_tension`, 10 substeps) for 20 tau, keeps its swing within the bound and its
+    hold tension within the limit; and the bound is tight: the libration's energy integral
+    reaches it (an independent reference: asin(sqrt(theta'^2 / 3 + sin^2 theta)))."""
+    rng = np.random.default_rng(3)
+    bounds = Bounds(swing=0.4, floor=0.005, tolerance=0.0)
+    held = 0
+    for _ in range(400):
+        x = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.8, 0.8), rng.uniform(-0.99, 0.0),
+                      rng.uniform(-0.002, 0.002)])
+        if not terminal(x, bounds, dynamics.TENSION_LIMIT, 0.002):
+            continue
+        held += 1
+        swing, tension = abs(x[0]), 0.0
+        for _ in range(2000):
+            u = float(dynamics.hold_tension(x))
+            tension = max(tension, float(dynamics.hold_tension(x, u_max=math.inf)))
+            x = dynamics.step(x, u, dynamics.PAPER_STEP, 10)
+            swing = max(swing, abs(x[0]))
+        assert swing <= 0.4 + 1e-3 and tension <= dynamics.TENSION_LIMIT
+    assert held > 50
+    x = np.array([0.0, 0.5, -0.5, 0.0])
+    predicted = math.asin(math.sqrt(0.5 ** 2 / 3))
+    assert terminal(x, Bounds(predicted + 1e-6, 0.005, 0.0), dynamics.TENSION_LIMIT, 0.002)
+    assert not terminal(x, Bounds(predicted - 1e-3, 0.005, 0.0), dynamics.TENSION_LIMIT, 0.002)
+
+
+def test_a_safe_command_flies_unchanged_and_a_losing_one_is_corrected():
+    """Near the target the equilibrium tension is certified and flown as asked; at the
+    paper's start, paying the tether out at no tension would whip the robot past a 0.4-rad
+    bound, and the filter flies another tension."""
+    law = SafetyFilter(Constant(3.0, bound=0.4), verified)
+    flown = fly(law, [0.01, 0.0, -0.01, 0.0], 50)
+    assert all(u == 3.0 and c == CERTIFIED for _, u, c in flown)
+    assert law.corrections == 0
+
+    bare = fly(Constant(0.0), dynamics.PAPER_INITIAL_STATE, 400)
+    assert max(abs(x[0]) for x, _, _ in bare) > 0.405
+    law = SafetyFilter(Constant(0.0, bound=0.4), verified)
+    flown = fly(law, dynamics.PAPER_INITIAL_STATE, 400)
+    assert max(abs(x[0]) for x, _, _ in flown) <= 0.405
+    assert law.corrections > 0 and law.correction_sum > 0.0
+
+
+def test_the_supervisor_alone_loses_this_start_and_the_filter_holds_it():
+    """The case class of the safety issue, with `closed_loop`: under theta_max 0.4 the
+    supervised learned NMPC tumbles from (0.1, 0, -0.99, 0.5); filtered, the swing stays
+    within 0.405 rad and the run stays in the domain."""
+    supervised = make_controller('koopman_nmpc', theta_max=0.4, safety='none')
+    states, _ = closed_loop(supervised, LOST_BY_THE_SUPERVISOR, 300)
+    assert len(states) <= 300 or np.abs(states[:, dynamics.THETA]).max() > 0.405
+    filtered = make_controller('koopman_nmpc', theta_max=0.4)
+    states, _ = closed_loop(filtered, LOST_BY_THE_SUPERVISOR, 300)
+    assert len(states) == 301
+    assert np.abs(states[:, dynamics.THETA]).max() <= 0.405
+
+
+@pytest.mark.parametrize('start, theta_max', [
+    ((0.0, 0.0, -0.9, 0.3), 0.4), ((0.0, 0.0, -0.95, 1.0), 0.4), ((0.05, 0.1, -0.8, 0.8), 0.4),
+    (dynamics.PAPER_INITIAL_STATE, 3.2), ((0.0, 0.0, -0.9, 0.3), 3.2)])
+def test_once_a_certificate_exists_every_later_step_has_one(start, theta_max):
+    """Recursive feasibility, on the model the certificates are made on (the planar equations
+    integrated as the certificate integrates them, no actuator error: no observer), the
+    learned law flown alone under the filter: after the first certified step, every step is
+    flown certified, on the kept certificate or on a new one of the verified law's, never
+    without one (no lapse, no uncertified step)."""
+    law = make_controller('koopman_nmpc', theta_max=theta_max, supervisor='none',
+                          observer='none')
+    substeps = law.filter_settings.substeps
+    flown = fly(law, start, 400, substeps=substeps)
+    outcomes = [c for _, _, c in flown]
+    assert len(flown) == 400
+    first = next(k for k, c in enumerate(outcomes) if c in (CERTIFIED, REPLANNED))
+    later = set(outcomes[first:])
+    assert later <= {CERTIFIED, KEPT, REPLANNED}, later
+
+
+def test_a_refused_learned_command_hands_the_plant_to_the_supervisor_s_fallback():
+    """Under the supervisor a refusal is a hand-over: the verified fallback flies from that
+    step (the filter passes it: `verified`), and the monitor says why (`certificate`)."""
+    law = make_controller('koopman_nmpc', theta_max=0.4)
+    flown = fly(law, LOST_BY_THE_SUPERVISOR, 120)
+    outcomes = [c for _, _, c in flown]
+    assert HANDED in outcomes or UNCERTIFIED in outcomes
+    assert VERIFIED in outcomes and law.law.reasons['certificate'] >= 1
+    assert LAPSED not in outcomes or law.counts[LAPSED] < 5
+
+
+def test_make_controller_filters_learned_laws_only():
+    law = make_controller('koopman_nmpc')
+    assert isinstance(law, SafetyFilter) and isinstance(law.law, Supervisor)
+    assert not isinstance(make_controller('koopman_nmpc', safety='none'), SafetyFilter)
+    assert not isinstance(make_controller('physics_nmpc'), SafetyFilter)
+    assert make_controller('koopman_nmpc', safety={'backup': 'hold'}).verified is None
+    with pytest.raises(ValueError, match='safety_filter.backup must be one of'):
+        make_controller('koopman_nmpc', safety={'backup': 'lqr'})
+    with pytest.raises(ValueError, match='safety_filter'):
+        make_controller('koopman_nmpc', safety={'nosuch': 1.0})
+
+
+def test_a_new_tension_limit_reaches_the_law_its_supervisor_and_the_filter():
+    """A live max_tension (the node calls `limit_tension`): the learned NMPC, the supervisor's
+    fallback and the filter's verified laws all plan within it, and the filter flies nothing
+    above it."""
+    law = make_controller('koopman_nmpc')
+    law.limit_tension(3.5)
+    laws = [law, law.law, law.law.learned, law.law.learned.law, law.law.fallback,
+            law.law.fallback.law, law.verified, law.probe]
+    assert all(inner.u_max == 3.5 for inner in laws)
+    flown = fly(law, dynamics.PAPER_INITIAL_STATE, 30)
+    assert max(u for _, u, _ in flown) <= 3.5
+    assert law.probe.felt_range[1] <= 3.5 + 1e-9
+    with pytest.raises(ValueError, match='u_max must be finite and > 0'):
+        law.limit_tension(0.0)
