@@ -79,7 +79,9 @@ def test_assignments_parse_into_sections_once_for_deploy_and_the_lab():
         'observer': {'disturbance': 'none'}, 'supervisor': {'fallback': 'none'}}
     for bad, message in (('koopman_mpc.horizon', 'SECTION.SETTING=VALUE'),
                          ('horizon=8', 'SECTION.SETTING=VALUE'),
-                         ('pid.gain=1', "unknown law 'pid'"),
+                         ('pid.gain=1', "unknown settings section 'pid': a law "
+                                        r"\(fractional_pd, .*\) or one of excitation, "
+                                        'observer, safety_filter, supervisor'),
                          ('koopman_mpc.horizn=8', "no setting 'horizn'"),
                          ('koopman_mpc.horizon=five', "cannot read 'five'")):
         with pytest.raises(ValueError, match=message):

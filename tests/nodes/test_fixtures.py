@@ -53,6 +53,29 @@ def test_a_failing_or_timed_out_test_still_stops_its_nodes(pytester, ending):
     assert left.stdout == '', 'processes left running: ' + left.stdout
 
 
+@pytest.mark.timeout(120)
+def test_a_user_suite_with_the_plugin_knows_the_ros_marker(pytester):
+    """A suite of a user's own that loads the plugin and marks its tests `ros` gets no
+    unknown-marker warning (here an error) and can deselect them with -m "not ros"."""
+    pytester.makeconftest("pytest_plugins = ['tsr_koopman_ctrl.testing']\n")
+    pytester.makepyfile(textwrap.dedent('''
+        import pytest
+
+
+        @pytest.mark.ros
+        def test_marked():
+            pass
+
+
+        def test_plain():
+            pass
+    '''))
+    result = pytester.runpytest_subprocess('-p', 'no:cacheprovider', '-W',
+                                           'error::pytest.PytestUnknownMarkWarning',
+                                           '-m', 'not ros')
+    result.assert_outcomes(passed=1, deselected=1)
+
+
 def test_a_test_has_a_domain_and_a_namespace_of_its_own(ros, ros_domain, ros_namespace,
                                                         start_node):
     """The domain is reserved for the test (no other draw gets it while it runs), and the

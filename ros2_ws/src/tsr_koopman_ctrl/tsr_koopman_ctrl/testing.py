@@ -29,7 +29,8 @@ is stopped at teardown, also when the test fails):
                 whose simulator status the `ros` client follows; .finish() waits for the end
                 and returns the RunResult read from the bag
 
-Tests that use them start processes: mark them (this project's own use `@pytest.mark.ros`).
+Tests that use them start processes: mark them `@pytest.mark.ros` (the plugin declares the
+marker, so a suite of your own needs no pytest.ini entry for it; `-m "not ros"` deselects them).
 """
 
 import os
@@ -39,6 +40,13 @@ import time
 import pytest
 
 from tsr_koopman_ctrl.launcher import NodeProcess, reserve_domain
+
+#: The marker of tests that start ROS processes, declared for every suite using the plugin.
+ROS_MARKER = 'ros: starts ROS processes over DDS (deselect with -m "not ros")'
+
+
+def pytest_configure(config):
+    config.addinivalue_line('markers', ROS_MARKER)
 
 
 class RosClient:

@@ -31,8 +31,14 @@ def settings_sections():
 
 def settings_class(section):
     """The settings class of a settings section: a law's or one of NODE_SECTIONS (ValueError,
-    one line, for an unknown one)."""
-    return NODE_SECTIONS.get(section) or law_class(section).Settings
+    one line naming both kinds, for an unknown one)."""
+    if section in NODE_SECTIONS:
+        return NODE_SECTIONS[section]
+    if section not in CONTROLLERS:
+        raise ValueError(f'unknown settings section {section!r}: a law '
+                         f"({', '.join(sorted(CONTROLLERS))}) or one of "
+                         f"{', '.join(sorted(NODE_SECTIONS))}")
+    return CONTROLLERS[section].Settings
 
 
 def law_class(name):
