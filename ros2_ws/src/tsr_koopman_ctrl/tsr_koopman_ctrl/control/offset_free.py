@@ -55,17 +55,6 @@ class ObserverSettings(LawSettings):
                                    'measurement; the disturbance is corrected either way)')
 
 
-def make_observer(settings, predictor, h):
-    """The disturbance observer `settings` (ObserverSettings) describe, on `predictor`."""
-    s = settings
-    return DisturbanceObserver(
-        predictor, disturbance=s.disturbance, sensor_std=s.sensor_std,
-        rate_noise_std=s.rate_noise_std, position_noise_std=s.position_noise_std,
-        disturbance_walk_std=s.disturbance_walk_std,
-        initial_disturbance_std=s.initial_disturbance_std, actuator_lag_tau=s.actuator_lag,
-        h=h)
-
-
 class OffsetFree(Wrapper):
     """`law` wrapped with a disturbance observer; a law itself (its name, settings, model, h,
     u_max and fallbacks are the wrapped law's)."""
@@ -78,7 +67,12 @@ class OffsetFree(Wrapper):
         use_model = s.predictor == 'model' or (s.predictor == 'auto' and law.model is not None)
         predictor = (koopman_predictor(law.model) if use_model
                      else physics_predictor(h=law.h))
-        self.observer = make_observer(s, predictor, law.h)
+        self.observer = DisturbanceObserver(
+            predictor, disturbance=s.disturbance, sensor_std=s.sensor_std,
+            rate_noise_std=s.rate_noise_std, position_noise_std=s.position_noise_std,
+            disturbance_walk_std=s.disturbance_walk_std,
+            initial_disturbance_std=s.initial_disturbance_std, actuator_lag_tau=s.actuator_lag,
+            h=law.h)
         self.reset()
 
     def reset(self):

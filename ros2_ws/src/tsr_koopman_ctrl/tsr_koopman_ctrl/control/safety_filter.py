@@ -62,8 +62,6 @@ LAPSED = 'lapsed'
 #: The supervisor's verified fallback flew (the filter passes it), or took over this step when
 #: the filter refused the learned law's tension (`Law.hand_over`).
 VERIFIED, HANDED = 'verified', 'handed_over'
-#: Which backup certified the flown tension.
-BACKUPS = ('hold', 'verified')
 #: A certificate keeps the bounds with this fraction of the swing tolerance and the terminal
 #: speed, and 5% of the hold's tension range spare (`SafetyFilter.check`).
 TIGHTENING = 0.5
@@ -122,13 +120,13 @@ class Rollouts:
         u = given[1] * hold + (1.0 - given[1]) * given[0]
         u = casadi.fmin(casadi.fmax(u, felt_range[0]), felt_range[1])
         end, _ = dynamics.symbolic_rk4(x, u, h, substeps)
-        sample = casadi.Function('sample', [x, given, felt_range], [end, u])
-        self.roll = sample.mapaccum('roll', samples, [0], [0])
-        self.samples, self.h, self.gain = samples, h, gain
+        sample = casadi.Function('sample', [x, given, felt_range], [end])
+        self.roll = sample.mapaccum('roll', samples)
+        self.samples = samples
 
     def __call__(self, x0, tensions, felt_range):
-        """States (samples + 1, 4) and felt tensions (samples,) of the backup that flies
-        `tensions` (a felt tension per sample; NaN: the reel hold's) from x0."""
+        """States (samples + 1, 4) of the backup that flies `tensions` (a felt tension per
+        sample; NaN: the reel hold's) from x0."""
         given = np.zeros((2, self.samples))
         given[1] = 1.0
         n = min(len(tensions), self.samples)
@@ -136,8 +134,8 @@ class Rollouts:
         hold = ~np.isfinite(tensions)
         given[0, :n] = np.where(hold, 0.0, tensions)
         given[1, :n] = hold
-        states, felt = self.roll(np.asarray(x0, dtype=float), given, np.asarray(felt_range))
-        return np.c_[x0, np.array(states)].T, np.array(felt).ravel()
+        states = self.roll(np.asarray(x0, dtype=float), given, np.asarray(felt_range))
+        return np.c_[x0, np.array(states)].T
 
 
 def terminal(x, bounds, felt_high, speed_tolerance, gain=dynamics.HOLD_GAIN):
@@ -151,8 +149,7 @@ def terminal(x, bounds, felt_high, speed_tolerance, gain=dynamics.HOLD_GAIN):
         return False
     w = (1.0 + rate) * (length / stopped) ** 2
     energy = 0.5 * (w - 1.0) ** 2 + 1.5 * math.sin(theta) ** 2
-    swing = min(bounds.swing, dynamics.TUMBLING_SWING)
-    if energy > 1.5 * math.sin(swing) ** 2:
+    if energy > 1.5 * math.sin(min(bounds.swing, dynamics.TUMBLING_SWING)) ** 2:
         return False
     return stopped * (3.0 + 2.0 * energy + 2.0 * math.sqrt(2.0 * energy)) <= felt_high
 
@@ -338,7 +335,7 @@ class SafetyFilter(Wrapper):
         hold's tension range) that a `kept` one, checked again from the state the plant did
         reach, may use: the plant integrates more finely than the certificate."""
         rollouts = rollouts or self.planned
-        states, _ = rollouts(x, tensions, felt_range)
+        states = rollouts(x, tensions, felt_range)
         if not np.all(np.isfinite(states)):
             return False
         b, s = self.bounds, self.filter_settings

@@ -155,11 +155,7 @@ class Supervisor(Law):
                 self.reasons[self.monitor] += 1
                 self.trusted_steps = 0
                 if self.flying == LEARNED:
-                    if self.flown is not None and self.flown < self.takeback:
-                        # Lost again on probation: the next wait is longer.
-                        self.takeback = min(2 * self.takeback,
-                                            s.takeback_backoff * s.takeback_steps)
-                    self.switch(FALLBACK)
+                    self.take_over()
                 else:
                     self.resting = self.takeback
             else:
@@ -190,14 +186,19 @@ class Supervisor(Law):
         planned this step (armed), else None."""
         if self.flying != LEARNED:
             return None
-        s = self.supervisor_settings
         self.monitor = reason
         self.reasons[reason] += 1
+        self.take_over()
+        self.armed = self.supervisor_settings.arm_steps
+        return None if self.planned is None else self.planned[0]
+
+    def take_over(self):
+        """The fallback takes the plant from the learned law; lost again on probation, the
+        learned law's next wait is longer."""
+        s = self.supervisor_settings
         if self.flown is not None and self.flown < self.takeback:
             self.takeback = min(2 * self.takeback, s.takeback_backoff * s.takeback_steps)
         self.switch(FALLBACK)
-        self.armed = s.arm_steps
-        return None if self.planned is None else self.planned[0]
 
     @staticmethod
     def run(law, x):
