@@ -8,7 +8,7 @@ import pytest
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control import closed_loop, make_controller, OffsetFree
-from tsr_koopman_ctrl.control import nmpc
+from tsr_koopman_ctrl.control import nmpc, prediction_maps
 from tsr_koopman_ctrl.control.nmpc import KoopmanNmpc, PhysicsNmpc, shift_plan
 from tsr_koopman_ctrl.control.prediction_maps import LearnedMap, PhysicsMap
 from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, frontier_tau, PAPER_START,
@@ -73,6 +73,8 @@ def test_the_physics_maps_native_build_is_casadi_bit_for_bit(tmp_path, monkeypat
     """A batch function's native build (C code, the system's compiler, kept in the cache)
     gives the virtual machine's numbers exactly: a run does not depend on when it landed."""
     monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path))
+    # (a process shares its batch functions between maps: this test builds its own)
+    monkeypatch.setattr(prediction_maps, '_SHARED_BATCHES', {})
     x, u = states_and_tensions(3)
     counts = np.array([1, 2, 10])
     physics = PhysicsMap()
@@ -82,7 +84,8 @@ def test_the_physics_maps_native_build_is_casadi_bit_for_bit(tmp_path, monkeypat
     assert physics.native() and list(tmp_path.rglob('*.so'))
     for native, expected in zip(physics.interval(x, u, counts), interpreted):
         np.testing.assert_array_equal(native, expected)
-    assert PhysicsMap().batch(counts, True).native is not None     # (from the cache)
+    prediction_maps._SHARED_BATCHES.clear()          # as in a new process: from the cache
+    assert PhysicsMap().batch(counts, True).native is not None
 
 
 def test_the_banded_condensing_is_the_interval_by_interval_one():

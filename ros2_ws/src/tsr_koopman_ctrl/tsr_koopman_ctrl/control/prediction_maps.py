@@ -190,6 +190,8 @@ class PhysicsMap(MapBase):
         if fast_key in self._batches_by_bytes:
             return self._batches_by_bytes[fast_key]
         key = (tuple(int(c) for c in counts), bool(derivatives))
+        if key not in self._batches and (key, self.h) in _SHARED_BATCHES:
+            self._batches[key] = _SHARED_BATCHES[key, self.h]
         if key not in self._batches:
             import casadi as ca
             counts = np.array(key[0])
@@ -205,8 +207,8 @@ class PhysicsMap(MapBase):
             if order != sorted(order):
                 out = out[:, np.argsort(order).tolist()]
             name = 'tsr_batch_' + hashlib.sha256(repr((key, self.h)).encode()).hexdigest()[:12]
-            self._batches[key] = BatchFunction(ca.Function(name, [rows], [out]),
-                                               (key, self.h, LEAD_SUBSTEP, SUBSTEP))
+            self._batches[key] = _SHARED_BATCHES[key, self.h] = BatchFunction(
+                ca.Function(name, [rows], [out]), (key, self.h, LEAD_SUBSTEP, SUBSTEP))
         self._batches_by_bytes[fast_key] = self._batches[key]
         return self._batches[key]
 
@@ -283,6 +285,12 @@ class PhysicsMap(MapBase):
     def interval(self, x, u, counts, exact=True):
         """Every row in one batch call (`batch`); exact whatever `exact` says."""
         return self.evaluate(x, u, counts)
+
+
+#: The batch functions built in this process, by (counts and derivatives, h): every physics
+#: map of a process (the supervisor's fallback, the safety filter's verified laws) evaluates
+#: the same ones, so each is built, and built to native code, once.
+_SHARED_BATCHES = {}
 
 
 class BatchFunction:
