@@ -5,7 +5,7 @@
 
 Starts are indexed in `evaluation.starts.TABULATED_STARTS` (0..10: the comparison, held-out and
 swing tuning starts). A recompute solves, per start, the least swing and the minimum time under
-every swing bound of min_time.THETA_GRID (evaluation/min_time.py, needs casadi; 20 s to 6 min a
+every swing bound of min_time.THETA_GRID (lab/min_time.py, needs casadi; 20 s to 6 min a
 bound on one core, about an hour for the first nine starts), printing each row as it is done and
 writing the table after each start. An existing table at --out keeps its other starts, so a long
 recompute can be split with --start. To update the shipped table, point --out at

@@ -18,8 +18,7 @@ import sys
 from lab.report import check_page, copy_figure, marker_name, stamp, write_into_page
 from tsr_koopman_ctrl import arguments
 from tsr_koopman_ctrl.control.registry import CONTROLLERS, DEFAULT_LAW
-from tsr_koopman_ctrl.deployment import (Deployment, DeploymentError, settle_cell,
-                                         summary_table)
+from tsr_koopman_ctrl.deployment import COLUMNS, Deployment, DeploymentError, summary_table
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments
 
 
@@ -82,28 +81,25 @@ FIGURE = os.path.join('docs', 'figures', 'main_job.png')
 ROLES = {DEFAULT_LAW: 'main job', 'koopman_lqr': "the paper's"}
 
 
-def headline(rows):
-    """The README's table: one row per run, the main job's settle time and every ratio bold."""
-    def ms(us):
-        return '-' if us is None else f'{us / 1000:.3g}'
+#: The headline's columns: some of deploy's table (`deployment.COLUMNS`), by the same names.
+HEADLINE_COLUMNS = ('law', 'settle tau (1% zone)', 'swing [rad]', 'l overshoot', 'max u',
+                    'compute median / p99 [ms]', 'minimum time at that swing [tau]', 'ratio')
 
-    def fmt(value, digits=2):
-        return '-' if value is None else f'{value:.{digits}f}'
+
+def headline(rows):
+    """The README's table: one row per run, deploy's cells of HEADLINE_COLUMNS, the main job's
+    settle time and every ratio bold."""
     lines = [f"Deployed over DDS from the paper's start ({stamp()}; every figure read back "
              'from the bags):', '',
-             '| law | settle tau (1% zone) | swing [rad] | l overshoot | max u | '
-             'compute median / p99 [ms] | minimum time at that swing [tau] | ratio |',
-             '|---|---|---|---|---|---|---|---|']
+             '| ' + ' | '.join(HEADLINE_COLUMNS) + ' |', '|' + '---|' * len(HEADLINE_COLUMNS)]
     for r in rows:
         law = r['controller']
-        name = f'`{law}`' + (f' ({ROLES[law]})' if law in ROLES else '')
-        settle = settle_cell(r)
-        settle = f'**{settle}**' if law == DEFAULT_LAW else settle
-        swing = max(abs(r['theta_min']), abs(r['theta_max']))
-        lines.append(f"| {name} | {settle} | {swing:.3f} | {100 * r['length_overshoot']:.2f}% "
-                     f"| {r['tension_max']:.2f} | {ms(r['compute_median_us'])} / "
-                     f"{ms(r['compute_p99_us'])} | {fmt(r['frontier_tau'], 1)} | "
-                     f"**{fmt(r['frontier_ratio'])}** |")
+        cells = {column: COLUMNS[column](r) for column in HEADLINE_COLUMNS}
+        cells['law'] = f'`{law}`' + (f' ({ROLES[law]})' if law in ROLES else '')
+        if law == DEFAULT_LAW:
+            cells['settle tau (1% zone)'] = f"**{cells['settle tau (1% zone)']}**"
+        cells['ratio'] = f"**{cells['ratio']}**"
+        lines.append('| ' + ' | '.join(cells.values()) + ' |')
     switches = sum(r.get('supervisor_switches') or 0 for r in rows)
     corrected = sum(r.get('safety_corrections') or 0 for r in rows)
     lines += ['', f'The runtime-assurance supervisor handed over {switches} times in these runs, '

@@ -10,6 +10,24 @@ PYTHON="${TSR_PYTHON:-python3}"
 
 say() { echo "[setup] $*" >&2; }
 
+# The ROS 2 Jazzy wheels are built for CPython 3.11 (cp311): with another version colcon fails
+# later on a CMake path. Checked first, on the interpreter the venv has or would be made with.
+REQUIRED_PYTHON=3.11
+check_python() {
+  local python version
+  python=$([ -x "$VENV/bin/python" ] && echo "$VENV/bin/python" || echo "$PYTHON")
+  version=$("$python" -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2>/dev/null)
+  [ "$version" = "$REQUIRED_PYTHON" ] && return 0
+  if [ "$python" = "$VENV/bin/python" ]; then
+    say "Python $REQUIRED_PYTHON is required: $VENV has Python ${version:-unknown}; remove" \
+        "it and run again with TSR_PYTHON=python$REQUIRED_PYTHON"
+  else
+    say "Python $REQUIRED_PYTHON is required: $python is ${version:-not found}; install" \
+        "python$REQUIRED_PYTHON and run again with TSR_PYTHON=python$REQUIRED_PYTHON"
+  fi
+  return 1
+}
+
 hash_of() { cat "$@" | sha256sum | cut -d' ' -f1; }
 
 install_venv() {
@@ -18,10 +36,12 @@ install_venv() {
   have=$(cat "$VENV/.tsr-installed" 2>/dev/null || true)
   [ "$want" = "$have" ] && return 0
   say "installing pinned wheels into $VENV (first run: ~2-3 min)"
-  [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
+  # Each step stops the set-up when it fails (set -e does not act inside `if !`), so that a
+  # failed install is never stamped as done.
+  [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV" || return 1
   "$VENV/bin/pip" install --quiet --disable-pip-version-check \
-    -r "$REPO/requirements.txt" -c "$REPO/constraints.txt"
-  fix_rosidl_py_exports
+    -r "$REPO/requirements.txt" -c "$REPO/constraints.txt" || return 1
+  fix_rosidl_py_exports || return 1
   echo "$want" > "$VENV/.tsr-installed"
 }
 
@@ -29,8 +49,9 @@ install_venv() {
 # (docs/ros_from_wheels.md, fix 2): point them at this interpreter's.
 fix_rosidl_py_exports() {
   local py_inc np_inc
-  py_inc=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
-  np_inc=$("$VENV/bin/python" -c 'import numpy; print(numpy.get_include())')
+  py_inc=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])') \
+    || return 1
+  np_inc=$("$VENV/bin/python" -c 'import numpy; print(numpy.get_include())') || return 1
   sed -i \
     -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#${np_inc}#g" \
     -e "s#/opt/python/cp311-cp311/include/python3.11#${py_inc}#g" \
@@ -59,7 +80,10 @@ colcon_build() {
      > "$WS/colcon_build.log" 2>&1)
 }
 
-if ! (set -eo pipefail; install_venv; build_workspace); then
+if ! check_python; then
+  return 1 2>/dev/null || exit 1
+fi
+if ! (set -eo pipefail; install_venv && build_workspace); then
   say "set-up failed"
   return 1 2>/dev/null || exit 1
 fi

@@ -81,8 +81,7 @@ def test_round_trip_with_own_reader_and_rosbags(tmp_path):
 
 
 def test_the_reader_gives_each_message_its_log_and_publish_times(tmp_path):
-    """On sim time the log time is the recorder's sim clock and the publish time the sender's
-    wall clock: both come back, each as written."""
+    """The log and publish times come back, each as written."""
     with bag.BagWriter(str(tmp_path / 'b')) as writer:
         writer.add_topic(string_topic())
         writer.write('/chatter', cdr_string('one'), log_time_ns=8_470_000_000,

@@ -146,9 +146,9 @@ def test_a_stock_bag_of_another_definition_is_refused_in_one_line(tmp_path, monk
 
 def test_the_project_writer_stores_times_and_metadata_as_rosbag2(tmp_path):
     """`write_received`: log time the reception, publish time the source timestamp, sequence
-    0 (rosbag2 0.26's mcap_storage.cpp and recorder.cpp); the node's clock when given
-    (use_sim_time). The 'rosbag2' record holds the metadata without metadata.yaml's wrapper, as
-    rosbag2 reads it."""
+    0 (rosbag2 0.26's mcap_storage.cpp and recorder.cpp); a reception earlier than the message
+    before it is logged at that message's time (log times never go back). The 'rosbag2' record
+    holds the metadata without metadata.yaml's wrapper, as rosbag2 reads it."""
     info = {'source_timestamp': 1_000, 'received_timestamp': 5_000,
             'publication_sequence_number': 7, 'reception_sequence_number': 9}
     with bag.BagWriter(str(tmp_path / 'b')) as writer:
@@ -156,7 +156,7 @@ def test_the_project_writer_stores_times_and_metadata_as_rosbag2(tmp_path):
                                        definitions.message_definition('tsr_msgs/msg/TsrState'),
                                        definitions.type_hash('tsr_msgs/msg/TsrState')))
         writer.write_received('/s', b'\x00\x01\x00\x00', info)
-        writer.write_received('/s', b'\x00\x01\x00\x00', info, clock_ns=8_000)
+        writer.write_received('/s', b'\x00\x01\x00\x00', {**info, 'received_timestamp': 4_000})
         writer.write_received('/s', b'\x00\x01\x00\x00',
                               {'source_timestamp': 0, 'received_timestamp': 0})
     with open(tmp_path / 'b' / 'b_0.mcap', 'rb') as f:
@@ -164,7 +164,7 @@ def test_the_project_writer_stores_times_and_metadata_as_rosbag2(tmp_path):
         messages = [m for _, _, m in reader.iter_messages()]
         (record,) = reader.iter_metadata()
     assert [(m.sequence, m.log_time, m.publish_time) for m in messages[:2]] == [
-        (0, 5_000, 1_000), (0, 8_000, 1_000)]
+        (0, 5_000, 1_000), (0, 5_000, 1_000)]
     assert messages[2].log_time == messages[2].publish_time > 10 ** 18      # now
     assert list(record.metadata) == ['serialized_metadata']
     stored = yaml.safe_load(record.metadata['serialized_metadata'])

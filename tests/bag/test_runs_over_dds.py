@@ -30,9 +30,10 @@ def reset_request(state):
 
 
 def test_a_sim_time_bag_across_a_reset_reads_as_two_runs(tsr_loop, ros):
-    """On sim time the reset sends every clock, and so the recorder's log times, back to 0;
-    the runs come from the simulator's run number: run 0 up to the reset, run 1 from the reset
-    state to the end, each command with its own run's state (run 1 is the ROS-free loop from
+    """On sim time the reset sends every clock back to 0, and the headers with it, while the
+    log times (receptions) go on in the order received, as stock tools play a bag; the runs
+    come from the simulator's run number: run 0 up to the reset, run 1 from the reset state to
+    the end, each command with its own run's state (run 1 is the ROS-free loop from
     the reset state, step for step). Lockstep runs ~1000 steps a second: run 0 is long and is
     cut by the reset; run 1 ends at `max_steps`, set (live) once it has begun."""
     from tsr_msgs.srv import ResetSim
@@ -57,10 +58,14 @@ def test_a_sim_time_bag_across_a_reset_reads_as_two_runs(tsr_loop, ros):
     np.testing.assert_allclose(second.u[:steps], want_u, atol=1e-9)
     assert second.sim_status.status == FINISHED and second.sim_status.step == steps
     assert not first.halted and first.sim_status.run == 0
-    # The log times went back at the reset: log-time order would interleave the runs.
-    log_times = [m.log_time_ns for m, d in BagReader(bag).decoded()
-                 if m.type == 'tsr_msgs/msg/TsrState' and d.run == 1 and d.step == 1]
-    assert log_times and min(log_times) < first.tau[-1] / Scale().orbit_rate * 1e9
+    # Headers on sim time went back at the reset; log times never go back.
+    states = [(m.log_time_ns, d.run, d.step, d.header.stamp.sec + d.header.stamp.nanosec * 1e-9)
+              for m, d in BagReader(bag).decoded() if m.type == 'tsr_msgs/msg/TsrState']
+    log_times = [state[0] for state in states]
+    assert log_times == sorted(log_times)
+    first_of_run_1 = next(stamp for _, run, step, stamp in states if (run, step) == (1, 1))
+    assert first_of_run_1 < first.tau[-1] / Scale().orbit_rate
+    assert all(log_time > 10 ** 18 for log_time in log_times)       # receptions, wall clock
     windows = recorded.read_windows(bag, steps=30)
     gaps = windows.provenance['gaps']
     assert gaps['resets'] == 1 and [r['states'] for r in gaps['loop_runs']] == [
@@ -69,8 +74,9 @@ def test_a_sim_time_bag_across_a_reset_reads_as_two_runs(tsr_loop, ros):
 
 
 def test_two_namespaced_sim_time_loops_on_one_domain_each_read_as_one_run(tsr_loop):
-    """Two simulators publish /clock on one domain, so each recorder's sim-time log times mix
-    both clocks; each bag is still one run, every step from 0, the ROS-free loop's."""
+    """Two simulators on one domain, each loop's /clock remapped into its namespace (as a
+    Deployment does): each bag holds its own loop's clock only, never going back, and is one
+    run, every step from 0, the ROS-free loop's."""
     steps = 200
     loops = [tsr_loop(law='linear_lqr', steps=steps, namespace=ns) for ns in ('/A', '/B')]
     runs = [loop.finish() for loop in loops]
@@ -85,6 +91,11 @@ def test_two_namespaced_sim_time_loops_on_one_domain_each_read_as_one_run(tsr_lo
         np.testing.assert_allclose(only.u[:steps], want_u, atol=1e-9)
         assert only.sim_status.status == FINISHED
         assert recorded.read_windows(run.bag, steps=30).provenance['gaps']['resets'] == 0
+        clocks = [(m.topic, d.clock.sec + d.clock.nanosec * 1e-9)
+                  for m, d in BagReader(run.bag).decoded() if m.type == 'rosgraph_msgs/msg/Clock']
+        assert clocks and {topic for topic, _ in clocks} == {f'{namespace}/clock'}
+        seconds = [second for _, second in clocks]
+        assert seconds == sorted(seconds)
 
 
 def test_the_final_state_reaches_the_bag_of_a_recorder_that_fell_behind(tsr_loop, ros):

@@ -218,7 +218,8 @@ def test_a_preset_may_set_the_observer_and_use_dotted_names_for_deploy(tmp_path)
     from tsr_koopman_ctrl.commands import deploy
     path = params(tmp_path, 'observer: {disturbance: none}\nkoopman_mpc.horizon: 8\n'
                   'koopman_mpc.r: 2')
-    args = deploy.parse_args(['--preset', str(path), '--set', 'koopman_mpc.r=3'])
+    args = deploy.parse_args(['--law', 'koopman_mpc', '--preset', str(path),
+                              '--set', 'koopman_mpc.r=3'])
     assert args.deployment.settings['observer'] == {'disturbance': 'none'}
     assert args.deployment.settings['koopman_mpc'] == {'horizon': 8, 'r': 3.0}  # --set on top
 

@@ -152,7 +152,8 @@ def test_the_sample_period_from_an_option_or_from_the_stamps_and_a_clear_line_wh
     with pytest.raises(recorded.BagDataError) as caught:
         recorded.read_windows(path, steps=30, h=H)
     assert str(caught.value) == (f"{path}: sample period h = 0.011804 tau (10 s, from the "
-                                 "states' stamps); the model needs 0.01 tau")
+                                 "states' stamps); the model needs 0.01 tau = 8.4717 s within "
+                                 '0.10%')
     # Stamps that give no period (a clock never set): the option gives it, and the warning
     # counts the stamp intervals that do not bear it out.
     flat = write_hardware_bag(tmp_path / 'flat', x, commands, stamps=np.zeros(len(x)))

@@ -597,3 +597,39 @@ def test_find_bags_walks_directories_and_reads_each_bag_once(good_bag, tmp_path)
     good, errors = recorded.read_bags([path, tmp_path / 'missing'], steps=30)
     assert len(good) == 1 and len(errors) == 1
     assert str(errors[0]) == f'{tmp_path / "missing"}: no such file or directory'
+
+
+def test_a_bag_without_commands_reads_back_with_one_warning_line(tmp_path):
+    """States alone (a recorder started without a controller): the loop reads back, its
+    tensions NaN, and a warning line says why."""
+    x, _, _ = loop_data(40)
+    path = write_loop(tmp_path / 'b', x, np.full(40, np.nan))
+    with pytest.warns(bag.BagWarning) as caught:
+        loop = bag.read_loop(path)
+    assert [str(w.message) for w in caught] == [
+        f'{path}: no tsr_msgs/msg/TensionCommand on /tsr/tension_cmd: every tension u is NaN']
+    assert np.isnan(loop.u).all() and loop.step.size == 40
+
+
+def test_a_sample_period_given_as_printed_is_the_model_s_and_another_is_refused(
+        tmp_path, capsys):
+    """A bag without RunInfo in the paper's units: 0.01 tau is 8.471704... s. The period as
+    `bag runs` prints it (8.4717) and as the help rounds it (8.472) are the model's; 8.47 is
+    not, and the refusal gives the digits to tell."""
+    from tsr_koopman_ctrl.commands import bag as bag_tool
+    x, u, _ = loop_data(40)
+    path = write_loop(tmp_path / 'b', x, u, scale=Scale(), run_info=False)
+    assert bag_tool.main(['runs', str(path)]) == 0
+    (sample,) = [line for line in capsys.readouterr().out.splitlines()
+                 if line.startswith('sample:')]
+    printed = sample.split(' = ')[2].split(' s ')[0]
+    assert printed == '8.4717'
+    for period in (printed, '8.472', Scale().tau_to_seconds(H)):
+        windows = recorded.read_windows(path, steps=30, h=H, sample_period=float(period))
+        assert windows.data.h == H and len(windows.data) == 1
+    message = bad(path, 'sample period', h=H, sample_period=8.47)
+    assert message == (f'{path}: sample period h = 0.00999799 tau (8.47 s, from the option '
+                       'given); the model needs 0.01 tau = 8.4717 s within 0.01%')
+    from tsr_koopman_ctrl.commands import retrain
+    assert "within a relative 0.0001: the paper's 0.01 tau is 8.4717 s" in ' '.join(
+        retrain.parser().format_help().split())

@@ -106,11 +106,11 @@ def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, sta
     ros.spin_until(lambda: len(watch.commands) > 20, timeout=30.0, what='commands once active')
     assert all(step != wire.NO_STEP for step, _ in watch.commands)
     ros.spin_until(lambda: health_of(watch, 'tsr_controller')[0] == b'\x00',
-                   what='OK health while commanding')
+                   what='OK health while commanding', timeout=30.0)
 
     assert transition(ros, 'deactivate') and lifecycle_state(ros) == INACTIVE
     ros.spin_until(lambda: watch.commands[-1][0] == wire.NO_STEP,
-                   what='the safe tension on deactivate')
+                   what='the safe tension on deactivate', timeout=30.0)
     count = len(watch.commands)
     ros.spin_for(1.5)
     assert len(watch.commands) == count      # then nothing
@@ -119,7 +119,7 @@ def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, sta
     assert watch.holds[-1] and not any(watch.holds[:-1])
     accepted = watch.status.commands_accepted
     ros.spin_until(lambda: watch.status.step > 100 and watch.status.holding,
-                   what='the simulator holding it')
+                   what='the simulator holding it', timeout=30.0)
     assert watch.status.commands_accepted == accepted and watch.status.command_timeouts == 0
 
     # Read at configure: refused while configured, accepted unconfigured, applied there.
@@ -129,7 +129,7 @@ def test_lifecycle_transitions_and_what_the_plant_gets_when_deactivated(ros, sta
     assert ros.set_parameters('tsr_controller', {'law': 'pid'}) == [(True, '')]
     assert not transition(ros, 'configure') and lifecycle_state(ros) == UNCONFIGURED
     ros.spin_until(lambda: health_of(watch, 'tsr_controller')[0] == b'\x02',
-                   what='an ERROR on /diagnostics')
+                   what='an ERROR on /diagnostics', timeout=30.0)
     assert "unknown law 'pid'" in health_of(watch, 'tsr_controller')[1]
 
 

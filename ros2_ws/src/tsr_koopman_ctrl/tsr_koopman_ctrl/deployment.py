@@ -21,8 +21,10 @@ import time
 import numpy as np
 from tsr_sim import dynamics
 from tsr_sim.plant import plant_parameters
+from tsr_sim.wire import CLOCK_TOPIC
 
 from tsr_koopman_ctrl.bag import read_loop
+from tsr_koopman_ctrl.bag.checks import mark_failed
 from tsr_koopman_ctrl.bag.writer import new_bag_name
 from tsr_koopman_ctrl.control.registry import (CONTROLLERS, DEFAULT_LAW, law_class,
                                                NODE_SECTIONS, preset, settings_class)
@@ -69,6 +71,10 @@ def merged_settings(law, settings=None, model=None, preset_name=None):
         merged[section] = dict(values)
     for section, values in (settings or {}).items():
         settings_class(section)        # an unknown section is one line
+        if section in CONTROLLERS and section != law:     # the node would never read it
+            raise ValueError(f"{section}.{', '.join(values)}: {section} is not the law "
+                             f"deployed ({law}); the sections that apply are {law}, "
+                             f"{', '.join(NODE_SECTIONS)}")
         merged.setdefault(section, {}).update(values)
     if model is not None:
         path = os.path.abspath(model) if os.path.isdir(model) else model
@@ -117,10 +123,7 @@ class Deployment:
         if overridden:
             raise ValueError(f'plant {self.plant_name}: {", ".join(overridden)} would be '
                              'overridden by the deployment (give x0 and steps instead)')
-        self.x0 = [float(v) for v in x0]
-        if len(self.x0) != dynamics.PLANAR_DIM or not dynamics.in_domain(np.array(self.x0)):
-            raise ValueError(f'x0 {self.x0} is outside the model domain (4 finite values, '
-                             'l - 1 > -1)')
+        self.x0 = checked_start(x0, self.plant.get('max_swing', dynamics.TUMBLING_SWING))
         if int(steps) < 1:
             raise ValueError(f'steps must be >= 1, got {steps}')
         self.steps = int(steps)
@@ -180,8 +183,16 @@ class Deployment:
             self.processes.append(NodeProcess(
                 package, exe, node, params[node], domain_id=self.domain,
                 log_path=None if console else os.path.join(self.logs, f'{node}.log'),
-                namespace=self.namespace))
+                namespace=self.namespace, extra_args=self.clock_remap()))
         return self
+
+    def clock_remap(self):
+        """A namespaced loop keeps its clock in its namespace (`/clock` remapped to
+        `<namespace>/clock` for each of its nodes): /clock is one topic per domain, and two
+        loops on one domain would otherwise run on, and record, each other's clock."""
+        if self.namespace in (None, '/'):
+            return ()
+        return ('-r', f'{CLOCK_TOPIC}:={self.namespace}{CLOCK_TOPIC}')
 
     def wait(self):
         """Until the simulator finishes; DeploymentError, with the log's tail, if another node
@@ -198,10 +209,13 @@ class Deployment:
 
     def run(self):
         """Start, wait for the end of the run, stop; the RunResult read from the bag. On Ctrl-C
-        the nodes are stopped and the bag closed first, then Interrupted is raised."""
-        print(f'[deploy] {self.law} from x0 = {self.x0} for {self.steps} steps (tau '
-              f'{self.steps * dynamics.PAPER_STEP:g}), plant {self.plant_name}, on '
-              f'ROS_DOMAIN_ID {self.domain}', flush=True)
+        the nodes are stopped and the bag closed first, then Interrupted is raised. A run that
+        fails (DeploymentError) keeps its bag, marked failed (`bag.checks.mark_failed`): a
+        directory of bags given to `retrain` skips it."""
+        length = self.x0[dynamics.LENGTH_OFFSET] + 1.0
+        print(f'[deploy] {self.law} from x0 = {self.x0} (l = {length:g}) for {self.steps} '
+              f'steps (tau {self.steps * dynamics.PAPER_STEP:g}), plant {self.plant_name}, '
+              f'on ROS_DOMAIN_ID {self.domain}', flush=True)
         try:
             self.start()
             self.wait()
@@ -209,6 +223,11 @@ class Deployment:
             print('[deploy] interrupted: closing the bag', flush=True)
             self.stop()
             raise Interrupted(self.result())
+        except DeploymentError as failure:
+            self.stop()                    # the recorder closes the bag first
+            if os.path.isdir(self.bag):
+                mark_failed(self.bag, str(failure))
+            raise
         finally:
             self.stop()
         return self.result()
@@ -251,7 +270,7 @@ def read_result(bag, law, x0, planned_steps, namespace=None):
     status = loop.controller_status
     figures.update(
         controller=law, x0=x0, bag=bag, steps=int(loop.step[-1]), planned_steps=planned_steps,
-        halt_tau=loop.halt_tau,
+        halt_tau=loop.halt_tau, halt_reason=loop.halt_reason,
         compute_median_us=float(np.median(compute_us)) if compute_us.size else None,
         compute_p99_us=float(np.percentile(compute_us, 99)) if compute_us.size else None,
         solver_fallbacks=status.solver_fallbacks if status else None,
@@ -262,6 +281,25 @@ def read_result(bag, law, x0, planned_steps, namespace=None):
         dropped_states=status.dropped_states if status else None,
         overruns=status.overruns if status else None)
     return RunResult(bag=bag, loop=loop, figures=figures)
+
+
+def checked_start(x0, max_swing=dynamics.TUMBLING_SWING):
+    """The start as 4 floats [theta, theta', l - 1, l'] (ValueError, one line, for one the
+    simulator would refuse or halt at once: outside the domain, 0 < l <= PLAUSIBLE_LENGTH, or
+    swinging past `max_swing`)."""
+    start = [float(v) for v in x0]
+    if len(start) != dynamics.PLANAR_DIM or not np.all(np.isfinite(start)):
+        raise ValueError(f'x0 {start} is not 4 finite values [theta, theta\', l - 1, l\']')
+    length = start[dynamics.LENGTH_OFFSET] + 1.0
+    if not 0.0 < length <= dynamics.PLAUSIBLE_LENGTH:
+        raise ValueError(f'x0 {start} is outside the model domain: l = {length:g}, not in '
+                         f'(0, {dynamics.PLAUSIBLE_LENGTH:g}] (the third value is l - 1: the '
+                         "paper's start l = 0.01 is -0.99)")
+    if abs(start[dynamics.THETA]) > max_swing:
+        raise ValueError(f'x0 {start} is outside the model domain: |theta| = '
+                         f'{abs(start[dynamics.THETA]):g} rad is past max_swing {max_swing:g} '
+                         '(tumbling)')
+    return start
 
 
 def checked_namespace(namespace):
@@ -285,30 +323,45 @@ def settle_cell(row):
     if row['settle_tau'] is not None:
         return f"{row['settle_tau']:.2f}"
     if row['halted']:
-        return f"left the domain at tau {row['halt_tau']:.2f}"
+        reason = row.get('halt_reason') or 'halted'
+        return reason if row['halt_tau'] is None else f"{reason} at tau {row['halt_tau']:.2f}"
     if row['steps'] < row['planned_steps']:
         return f"stopped at step {row['steps']}"
     return 'not reached'
 
 
-def summary_table(rows):
-    """The deployment table (markdown), one row per run's figures."""
-    def fmt(v, digits=2):
-        return '-' if v is None else f'{v:.{digits}f}'
+def _fixed(value, digits=2):
+    return '-' if value is None else f'{value:.{digits}f}'
 
-    lines = ['| law | x0 | settle tau (1% zone) | final l | theta range [rad] | '
-             'l overshoot | max u | integral u dtau | compute median / p99 [us] | '
-             'fallback flew [steps] (switches) | safety filter corrected [steps] | '
-             'frontier tau | ratio |',
-             '|---|---|---|---|---|---|---|---|---|---|---|---|---|']
-    for r in rows:
-        final_l = r['final_state'][dynamics.LENGTH_OFFSET] + 1.0
-        lines.append(f"| {r['controller']} | {r['x0']} | {settle_cell(r)} | {final_l:.3f} | "
-                     f"[{r['theta_min']:.3f}, {r['theta_max']:.3f}] | "
-                     f"{r['length_overshoot']:.4f} | {r['tension_max']:.3f} | "
-                     f"{r['tension_integral']:.2f} | {fmt(r['compute_median_us'], 0)} / "
-                     f"{fmt(r['compute_p99_us'], 0)} | {r.get('fallback_steps', 0)} "
-                     f"({r.get('supervisor_switches') or 0}) | "
-                     f"{r.get('safety_corrections') or 0} | {fmt(r['frontier_tau'], 1)} | "
-                     f"{fmt(r['frontier_ratio'])} |")
+
+def _ms(us):
+    return '-' if us is None else f'{us / 1000:.3g}'
+
+
+#: The deployment table's columns: header -> the cell of a run's figures. The README's
+#: headline (`lab.main_job`) shows some of them under the same headers, in the same units.
+COLUMNS = {
+    'law': lambda r: r['controller'],
+    'x0': lambda r: str(r['x0']),
+    'settle tau (1% zone)': settle_cell,
+    'final l': lambda r: f"{r['final_state'][dynamics.LENGTH_OFFSET] + 1.0:.3f}",
+    'swing [rad]': lambda r: f"{r['swing']:.3f}",
+    'l overshoot': lambda r: f"{100 * r['length_overshoot']:.2f}%",
+    'max u': lambda r: f"{r['tension_max']:.2f}",
+    'integral u dtau': lambda r: f"{r['tension_integral']:.2f}",
+    'compute median / p99 [ms]':
+        lambda r: f"{_ms(r['compute_median_us'])} / {_ms(r['compute_p99_us'])}",
+    'fallback flew [steps] (switches)':
+        lambda r: f"{r.get('fallback_steps', 0)} ({r.get('supervisor_switches') or 0})",
+    'safety filter corrected [steps]': lambda r: str(r.get('safety_corrections') or 0),
+    'minimum time at that swing [tau]': lambda r: _fixed(r['frontier_tau'], 1),
+    'ratio': lambda r: _fixed(r['frontier_ratio']),
+}
+
+
+def summary_table(rows, columns=tuple(COLUMNS)):
+    """The deployment table (markdown), one row per run's figures, of `columns` (COLUMNS)."""
+    lines = ['| ' + ' | '.join(columns) + ' |', '|' + '---|' * len(columns)]
+    lines += ['| ' + ' | '.join(COLUMNS[column](r) for column in columns) + ' |'
+              for r in rows]
     return '\n'.join(lines)

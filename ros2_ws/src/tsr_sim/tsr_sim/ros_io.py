@@ -34,11 +34,13 @@ from tsr_sim.units import DEFAULT_MASS, PAPER_ORBIT_RATE, PAPER_TETHER_LENGTH, S
 #: State and command: reliable, so lockstep never loses a step; shallow, so no backlog builds.
 LOOP_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                       history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
-#: A controller's state subscription: the newest state only. A state that arrives while the
-#: law computes replaces the one waiting, so the law always acts on the plant as it is now (a
-#: real-time loop drops what it could not answer in time; the controller counts the gaps).
-NEWEST_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                        history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
+#: A controller's state subscription. The controller takes every state queued at once and
+#: answers the newest (a real-time loop drops what it could not answer in time; it counts the
+#: gaps), so a deep queue builds no backlog; a queue of one let the next state push a stray one
+#: out before the controller had seen it (a non-finite state then left no trace).
+STATE_QUEUE_DEPTH = 100
+STATE_QOS = QoSProfile(depth=STATE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                       history=HistoryPolicy.KEEP_LAST, durability=DurabilityPolicy.VOLATILE)
 #: Publishers of the loop keep their last messages for late joiners, and enough of them that a
 #: recorder falling behind under load (a reliable writer drops what is past its depth, acked or
 #: not) loses nothing: at ~1 000 lockstep steps/s, 1 000 messages are a second of slack.

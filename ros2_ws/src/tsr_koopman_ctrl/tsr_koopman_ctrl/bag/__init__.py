@@ -13,5 +13,6 @@ tsr_koopman_ctrl.commands.bag recover BAG`).
 from tsr_koopman_ctrl.bag.definitions import TopicInfo  # noqa: F401
 from tsr_koopman_ctrl.bag.files import info, recover, runs  # noqa: F401
 from tsr_koopman_ctrl.bag.reader import BagReader, FileReport, ReadReport  # noqa: F401
-from tsr_koopman_ctrl.bag.tsr_loop import read_loop, read_runs, RecordedLoop  # noqa: F401
+from tsr_koopman_ctrl.bag.tsr_loop import (BagWarning, read_loop, read_runs,  # noqa: F401
+                                           RecordedLoop)
 from tsr_koopman_ctrl.bag.writer import BagWriter  # noqa: F401

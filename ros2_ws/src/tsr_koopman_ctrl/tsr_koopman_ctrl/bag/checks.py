@@ -3,6 +3,7 @@ its content hashed (files and messages), its loop's types against the installed 
 
     from tsr_koopman_ctrl.bag import checks
     paths = checks.find_bags(['bags/'])       # a bag, one .mcap file, or every bag below
+                                              # (but those of failed deployments)
     counts, types, digest = checks.scan(path, BagReader(path))
 
 A type recorded with another definition than the installed one, a state or command that does
@@ -13,12 +14,13 @@ import collections
 import functools
 import hashlib
 import os
+import warnings
 
 from tsr_sim import wire
 
 from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.bag.reader import bag_files
-from tsr_koopman_ctrl.bag.tsr_loop import loop_namespace, STATE_TYPE, TENSION_TYPE
+from tsr_koopman_ctrl.bag.tsr_loop import BagWarning, loop_namespace, STATE_TYPE, TENSION_TYPE
 
 #: Types whose definition must match the installed one: a loop is read from them.
 CHECKED_TYPES = (STATE_TYPE, TENSION_TYPE)
@@ -32,11 +34,28 @@ class BagDataError(ValueError):
         self.bag, self.what = str(bag), what
 
 
-def find_bags(paths):
+#: The file a failed deployment leaves in its bag, saying why it failed: the bag is kept as
+#: recorded, for a look at what went wrong, but it is no training data.
+FAILED_MARK = 'failed_deployment.txt'
+
+
+def mark_failed(bag, reason):
+    """Mark `bag` as the record of a failed deployment (`FAILED_MARK`, holding `reason`)."""
+    with open(os.path.join(bag, FAILED_MARK), 'w') as mark:
+        mark.write(reason.rstrip('\n') + '\n')
+
+
+def is_failed(bag):
+    return os.path.isfile(os.path.join(bag, FAILED_MARK))
+
+
+def find_bags(paths, skipped=None):
     """The bags named by `paths`, each once, in order: a bag directory (its .mcap files), one
     .mcap file, or a directory holding bags anywhere below it (sorted). A directory counts as a
     bag if it holds .mcap files or a rosbag2 metadata.yaml (then an empty bag is reported as
-    such). Raises BagDataError for a path that names no bag."""
+    such). Below a directory, the bags of failed deployments (`mark_failed`) are skipped, each
+    with one line appended to `skipped` (a list; None: a BagWarning); named themselves, they
+    are read. Raises BagDataError for a path that names no bag."""
     found, seen = [], set()
     for path in paths:
         path = os.fspath(path)
@@ -50,8 +69,19 @@ def find_bags(paths):
         else:
             bags = sorted(directory for directory, _, names in os.walk(path, followlinks=True)
                           if 'metadata.yaml' in names or any(n.endswith('.mcap') for n in names))
+            failed = [bag for bag in bags if bag != path and is_failed(bag)]
+            for bag in failed:
+                line = (f'skipped {bag}: the bag of a failed deployment ({FAILED_MARK} says '
+                        'why; name the bag itself to read it)')
+                if skipped is None:
+                    warnings.warn(line, BagWarning, stacklevel=2)
+                else:
+                    skipped.append(line)
+            bags = [bag for bag in bags if bag not in failed]
             if not bags:
-                raise BagDataError(path, 'no bag below it (no .mcap files)')
+                raise BagDataError(path, 'no bag below it (no .mcap files)' if not failed else
+                                   'no bag below it but those of failed deployments '
+                                   f'({len(failed)} skipped)')
         for bag in bags:
             key = os.path.realpath(bag)
             if key not in seen:

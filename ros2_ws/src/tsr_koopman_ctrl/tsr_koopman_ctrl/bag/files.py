@@ -205,8 +205,8 @@ def runs(bag, namespace=None, **reading):
         extra = [f'{held} held' if held else '',
                  f'{loop.counts["conflicting_states"]} conflicting states'
                  if loop.counts['conflicting_states'] else '',
-                 f'halted at tau {loop.halt_tau:.2f}' if loop.halt_tau is not None else
-                 ('halted' if loop.halted else '')]
+                 f'{loop.halt_reason} at tau {loop.halt_tau:.2f}' if loop.halt_tau is not None
+                 else (loop.halt_reason or '')]
         lines.append(line + ''.join(f', {e}' for e in extra if e))
     return lines
 

@@ -44,7 +44,7 @@ _MESSAGE_HEAD = struct.Struct('<HIQQ')       # channel id, sequence, log time, p
 class BagMessage:
     topic: str
     type: str
-    log_time_ns: int        # the recorder's clock: sim time in a bag recorded on sim time
+    log_time_ns: int        # when the recorder received it (rosbag2 on sim time: the sim clock)
     data: bytes
     publish_time_ns: int = 0    # the publisher's wall clock when the rmw gives it
 

@@ -7,8 +7,8 @@ RunInfo and statuses and the controller's statuses are read when they are there.
 
 Order. "Before" and "after" below are the order the messages were recorded in: the bag's files
 in split order and the messages of each file in file order, which is the order the recorder
-received them. Never log time: on sim time that is the last /clock the recorder received, which
-goes back at a reset and mixes two clocks when two simulators publish /clock on one domain.
+received them (the project's recorder's log times follow it; another recorder on sim time logs
+the sim clock, which goes back at a reset).
 
 Runs. The simulator numbers its runs: `TsrState.run` is 0 at start and one more at each reset
 (`tsr/reset`). A run is the states carrying one number, in step order; the runs are in the order
@@ -50,6 +50,7 @@ the states' header-stamp differences per step (None when the stamps give none).
 import bisect
 from dataclasses import dataclass, field
 import math
+import warnings
 
 import numpy as np
 from tsr_sim import wire
@@ -62,8 +63,12 @@ STATE_TYPE = wire.LOOP_TOPIC_TYPES[wire.STATE_TOPIC]
 TENSION_TYPE = wire.LOOP_TOPIC_TYPES[wire.TENSION_TOPIC]
 SIM_STATUS_TYPE = wire.LOOP_TOPIC_TYPES[wire.SIM_STATUS_TOPIC]
 CONTROLLER_STATUS_TYPE = wire.LOOP_TOPIC_TYPES[wire.CONTROLLER_STATUS_TOPIC]
-#: tsr_msgs/SimStatus.status of a plant that stopped because the state left the domain.
+#: tsr_msgs/SimStatus.status of a plant that stopped because the state left the domain (or
+#: tumbled, or the tether paid out too far: its message says which, `halt_reason`).
 HALTED_OUT_OF_DOMAIN = 1
+#: Why the simulator halted a run, by how its SimStatus.message begins (`tsr_sim.plant.Plant`).
+HALT_REASONS = (('tumbling', 'tumbled'), ('the tether paid out', 'paid out too far'),
+                ('state left the model domain', 'left the domain'))
 #: ControllerStatus.status values that mean a command was computed (and timed).
 COMPUTED = (0, 1, 2)
 #: How commands are matched to states (module docstring).
@@ -73,10 +78,24 @@ MATCHES = (BY_STEP, BY_TIME)
 H_FROM_RUN_INFO, H_FROM_OPTION, H_FROM_STAMPS = 'run_info', 'option', 'stamps'
 H_SOURCES = {H_FROM_RUN_INFO: "the simulator's RunInfo", H_FROM_OPTION: 'the option given',
              H_FROM_STAMPS: "the states' stamps"}
+#: A sample period given in seconds matches a model's within this (relative): the period as
+#: printed to 5 significant digits (`bag runs`: 8.4717 s) or to 4 (8.472 s) passes.
+GIVEN_PERIOD_TOLERANCE = 1e-4
 #: Where the units came from.
 UNITS_FROM_RUN_INFO, UNITS_GIVEN, UNITS_DEFAULT = 'run_info', 'given', 'default'
 UNITS_SOURCES = {UNITS_FROM_RUN_INFO: "the simulator's RunInfo", UNITS_GIVEN: 'as given',
                  UNITS_DEFAULT: "the paper's"}
+
+
+class BagWarning(UserWarning):
+    """A bag read as far as it can be, with something the caller should know (one line)."""
+
+
+def halt_reason(message):
+    """'tumbled', 'paid out too far' or 'left the domain': why the simulator halted a run,
+    from its status message ('halted' for a message it does not begin with)."""
+    return next((reason for start, reason in HALT_REASONS if message.startswith(start)),
+                'halted')
 
 
 @dataclass
@@ -143,13 +162,19 @@ class RecordedLoop:
 
     @property
     def halted(self):
-        """True if the simulator stopped because the state left the domain."""
+        """True if the simulator halted the run: the state left the domain, tumbled or paid
+        out too far (`halt_reason` says which)."""
         return self.sim_status is not None and self.sim_status.status == HALTED_OUT_OF_DOMAIN
 
     @property
     def halt_tau(self):
-        """tau at which the state left the domain (None if it did not)."""
+        """tau at which the simulator halted the run (None if it did not)."""
         return float(self.tau[-1] + self.h) if self.halted and self.h else None
+
+    @property
+    def halt_reason(self):
+        """Why the simulator halted the run (`halt_reason`); None if it did not."""
+        return halt_reason(self.sim_status.message) if self.halted else None
 
     def describe(self):
         """'run k: steps a-b (N states)', with the simulator's number where it differs."""
@@ -318,7 +343,8 @@ def read_runs(path, scale=None, namespace=None, sample_period=None, match=None):
     one for a bag without reset. `scale`: the units of a bag without a simulator RunInfo
     (default the paper's); `sample_period` [s]: its sample period (default from the states'
     stamps); `match`: 'step' or 'time' (default from the simulator's mode). ValueError, one
-    line, for a bad option or a bag that cannot be read as a loop."""
+    line, for a bad option or a bag that cannot be read as a loop; a BagWarning, one line, for
+    a bag without commands (its tensions are NaN)."""
     check_options(sample_period, match)
     reader = BagReader(path)
     by_topic, topics_by_type = {}, {}
@@ -347,6 +373,10 @@ def read_runs(path, scale=None, namespace=None, sample_period=None, match=None):
     h, h_source = _sample_period(runs, simulator, scale, sample_period)
 
     commands = messages(wire.TENSION_TOPIC)
+    if not commands:
+        warnings.warn(f'{path}: no {TENSION_TYPE} on '
+                      f'{wire.resolve(wire.TENSION_TOPIC, namespace)}: every tension u is NaN',
+                      BagWarning, stacklevel=2)
     statuses = [[] for _ in runs]
     numbers = {run.number: k for k, run in enumerate(runs)}
     for key, decoded in messages(wire.SIM_STATUS_TOPIC):

@@ -11,8 +11,9 @@ it)::
 
 Messages are stored as the CDR bytes received, never re-serialised, with the times rosbag2
 0.26 (Jazzy) stores (`write_received`): the log time is when the message was received (the
-rmw's received_timestamp; the node's clock under use_sim_time), the publish time when it was
-sent (source_timestamp), and the sequence number is 0, which rosbag2 0.26 writes for every
+rmw's received_timestamp, on sim time too, where rosbag2 would log the sim clock: see
+`write_received`), the publish time when it was sent (source_timestamp), and the sequence
+number is 0, which rosbag2 0.26 writes for every
 message (ros2/rosbag2 tag 0.26.5: rosbag2_storage_mcap/src/mcap_storage.cpp `write_lock_free`;
 rosbag2_transport/src/rosbag2_transport/recorder.cpp `create_subscription`).
 
@@ -227,6 +228,7 @@ class BagWriter:
         self._pending_since = None     # clock time of the oldest message not yet on disk
         #: `clock` time of the last write to the OS (a chunk written, a flush), or None.
         self.last_flush_wall = None
+        self.last_log_time_ns = 0      # of the last message received: log times never go back
         self._closed_bytes = 0         # bytes of the files finished before the current one
         self._open_file()
 
@@ -252,16 +254,17 @@ class BagWriter:
         self._register_pending(topic)
         self._write_metadata()
 
-    def write_received(self, topic, cdr_bytes, message_info, clock_ns=None):
+    def write_received(self, topic, cdr_bytes, message_info):
         """Write a message a subscription took, with rclpy's MessageInfo (the callback's second
-        argument), as rosbag2 0.26 records it: log time the received_timestamp, or `clock_ns`
-        when given (the node's clock under use_sim_time, as rosbag2 does), or now if the rmw
-        gives no reception time; publish time the source_timestamp (the log time if none)."""
+        argument): log time the received_timestamp (now if the rmw gives none), never earlier
+        than the message written before it, so that stock tools (`ros2 bag play`, Foxglove)
+        play the bag in the order it was received; publish time the source_timestamp (the log
+        time if none). On sim time too: rosbag2 logs the node's sim clock there, which goes
+        back at a reset and mixes two loops' clocks on one domain; the messages' headers carry
+        sim time."""
         received = int(message_info.get('received_timestamp') or 0)
-        if clock_ns is not None:
-            log_time_ns = int(clock_ns)
-        else:
-            log_time_ns = received if received > 0 else time.time_ns()
+        log_time_ns = max(received if received > 0 else time.time_ns(), self.last_log_time_ns)
+        self.last_log_time_ns = log_time_ns
         sent = int(message_info.get('source_timestamp') or 0)
         self.write(topic, cdr_bytes, log_time_ns, sent if sent > 0 else log_time_ns)
 

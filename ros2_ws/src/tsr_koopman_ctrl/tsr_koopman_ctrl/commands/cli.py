@@ -18,11 +18,13 @@ def add_loop_reading(parser):
         'bags without a simulator RunInfo (hardware, another recorder)',
         'A bag needs only tsr/state and tsr/tension_cmd. Units and sample period come from '
         "the simulator's RunInfo when the bag has one, else from these options.")
+    from tsr_koopman_ctrl.bag.tsr_loop import GIVEN_PERIOD_TOLERANCE
     paper_h = Scale().tau_to_seconds(dynamics.PAPER_STEP)
     group.add_argument('--sample-period', type=number(above=0), metavar='SECONDS',
                        help="sample period (default: the median interval of the states' "
-                       f'header stamps per step; the paper\'s 0.01 tau is {paper_h:.4g} s at '
-                       'the default orbit rate)')
+                       'header stamps per step); retrain takes it for the model\'s within a '
+                       f'relative {GIVEN_PERIOD_TOLERANCE:g}: the paper\'s 0.01 tau is '
+                       f'{paper_h:.6g} s at the default orbit rate ({paper_h:.4g} passes too)')
     group.add_argument('--orbit-rate', type=number(above=0), metavar='RAD_PER_S',
                        help=f"orbit rate Omega (default: the paper's {PAPER_ORBIT_RATE:g})")
     group.add_argument('--tether-length', type=number(above=0), metavar='METRES',

@@ -7,9 +7,10 @@
 Starts the simulator (lockstep, or `--mode timed`: the hardware rehearsal), the controller and
 the recorder as three processes on a DDS domain of their own (`deployment.Deployment`), waits
 for the run to end, closes the bag and reads the run back from it: every figure of the table
-comes from the bag. Exit status 1 if the state left the domain or a node failed, 2 for a bad
-option (one line, before any node starts), 130 on Ctrl-C (the bag is closed and the steps run
-so far summarised).
+comes from the bag. Exit status 1 if the simulator halted the run (the robot tumbled, or the
+state left the domain) or a node failed (the bag is kept, marked failed: `retrain` skips it
+below a directory), 2 for a bad option (one line, before any node starts), 130 on Ctrl-C (the
+bag is closed and the steps run so far summarised).
 """
 
 import argparse
@@ -18,6 +19,7 @@ import sys
 
 from tsr_sim import dynamics
 
+from tsr_koopman_ctrl.bag.checks import FAILED_MARK, is_failed
 from tsr_koopman_ctrl.commands import cli
 from tsr_koopman_ctrl.control import CONTROLLERS
 from tsr_koopman_ctrl.control.registry import DEFAULT_LAW
@@ -37,10 +39,12 @@ def parse_args(argv):
                         "'tuned_cross' under the installed config/, or a parameter file); "
                         '--set applies on top')
     parser.add_argument('--set', action='append', default=[], metavar='SECTION.SETTING=VALUE',
-                        help='a setting of the law (koopman_mpc.horizon=8), the observer '
+                        help='a setting of the law deployed (koopman_mpc.horizon=8 with '
+                        '--law koopman_mpc; another law\'s is refused), the observer '
                         '(observer.disturbance=none: the bare law), the excitation '
-                        '(excitation.kind=prbs) or the supervisor (supervisor.fallback=none: '
-                        'the learned law unwatched); repeatable; sequences as a,b,c')
+                        '(excitation.kind=prbs), the supervisor (supervisor.fallback=none: '
+                        'the learned law unwatched) or the safety filter '
+                        '(safety_filter.backup=none); repeatable; sequences as a,b,c')
     parser.add_argument('--plant', default='nominal',
                         help='plant variant: a name under tsr_sim/config/plants (actuator_weak, '
                         'actuator_strong, heavy_robot, out_of_plane, eccentric_orbit, '
@@ -55,7 +59,8 @@ def parse_args(argv):
                         help='timed mode: simulator steps per wall second (default 100)')
     parser.add_argument('--x0', type=float, nargs=4, default=dynamics.PAPER_INITIAL_STATE,
                         metavar=('THETA', 'THETA_RATE', 'L_MINUS_1', 'L_RATE'),
-                        help='dimensionless initial state (paper: 0 0 -0.99 0.5)')
+                        help="dimensionless initial state; the third value is l - 1, not l "
+                        "(default: the paper's start l = 0.01, l' = 0.5: 0 0 -0.99 0.5)")
     parser.add_argument('--out', default='out', type=cli.output_dir,
                         help='directory for the plot, the summary and the node logs')
     parser.add_argument('--bags', default='bags', type=cli.output_dir,
@@ -81,6 +86,10 @@ def parse_args(argv):
         parser.error(str(error))
     deployment = args.deployment
     deployment.logs = os.path.join(args.out, deployment.name)
+    length = deployment.x0[dynamics.LENGTH_OFFSET] + 1.0
+    if length > 1.0:
+        print(f'[deploy] note: --x0 starts at l = {length:g}, past the full tether length (the '
+              "third value is l - 1: the paper's l = 0.01 is -0.99)", file=sys.stderr)
     return args
 
 
@@ -113,13 +122,23 @@ def main(argv=None):
         return cli.INTERRUPTED_STATUS
     except (ValueError, DeploymentError, FileNotFoundError) as error:
         print(f'[deploy] failed: {error}', file=sys.stderr)
+        if is_failed(deployment.bag):
+            print(f'[deploy] the bag of the failed run is kept in {deployment.bag}, marked '
+                  f'failed ({FAILED_MARK}): retrain skips it below a directory',
+                  file=sys.stderr)
         return 1
     report(result, deployment.logs)
     if result.halted:
-        print(f'[deploy] the state left the model domain at tau '
-              f'{result.figures["halt_tau"]:.2f}', file=sys.stderr)
+        print(f'[deploy] {halt_line(result.loop)}', file=sys.stderr)
         return 1
     return 0
+
+
+def halt_line(loop):
+    """Why and when the simulator halted the run, in its own words where the bag has them."""
+    said = loop.sim_status.message.split('; integration stopped')[0]
+    when = '' if loop.halt_tau is None else f' at tau {loop.halt_tau:.2f}'
+    return f'the run halted{when}: {loop.halt_reason}' + (f' ({said})' if said else '')
 
 
 if __name__ == '__main__':

@@ -3,9 +3,9 @@
 A controller that swings to max |theta| = s cannot deploy faster than the minimum-time solution
 with |theta| <= s (docs/frontier.md). The table (frontier_table.json, next to this module) holds,
 for every comparison, held-out and tuning start, the least time (tau) in which 0 <= u <= 5 brings
-the plant to x = 0 under a grid of swing bounds, and the least swing the solver could reach. It was
-computed by evaluation/min_time.py; `python -m lab.frontier` recomputes it. This
-module only reads it (no casadi on the control or scoring path).
+the plant to x = 0 under a grid of swing bounds, and the least swing the solver could reach,
+as the lab's minimum-time solver (lab/min_time.py) computed it; `python -m lab.frontier`
+recomputes it. This module only reads it (no casadi on the control or scoring path).
 """
 
 import functools

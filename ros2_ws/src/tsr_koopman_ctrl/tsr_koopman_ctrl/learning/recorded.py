@@ -56,7 +56,8 @@ from tsr_sim import dynamics, wire
 
 from tsr_koopman_ctrl.bag.checks import BagDataError, content_hash, loop_topics, scan
 from tsr_koopman_ctrl.bag.reader import BagReader, COMPLETE
-from tsr_koopman_ctrl.bag.tsr_loop import (check_options, H_FROM_RUN_INFO, H_FROM_STAMPS,
+from tsr_koopman_ctrl.bag.tsr_loop import (check_options, GIVEN_PERIOD_TOLERANCE,
+                                           H_FROM_OPTION, H_FROM_RUN_INFO, H_FROM_STAMPS,
                                            H_SOURCES, read_runs, UNITS_FROM_RUN_INFO,
                                            UNITS_SOURCES)
 from tsr_koopman_ctrl.evaluation.figures import in_zone
@@ -66,6 +67,9 @@ DEFAULT_STEPS = 30
 #: A sample period read from the states' stamps matches the model's within this (relative):
 #: stamps carry their clock's jitter and rounding, a recorded RunInfo is exact.
 STAMPS_PERIOD_TOLERANCE = 1e-3
+#: Relative tolerance on the sample period, by where it came from.
+PERIOD_TOLERANCES = {H_FROM_RUN_INFO: 1e-9, H_FROM_OPTION: GIVEN_PERIOD_TOLERANCE,
+                     H_FROM_STAMPS: STAMPS_PERIOD_TOLERANCE}
 #: A stamp interval this far (relative) from the sample period is reported as irregular.
 IRREGULAR_INTERVAL = 0.1
 #: Same bound as the sampler's (`SamplingConfig.max_abs_state`): states beyond it are runaways.
@@ -122,10 +126,11 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     training window touches them, so overlapping windows cannot leak into the epoch choice.
 
     `h` and `state_dim`, when given, are what the windows must have (the model's); a bag with
-    another sample period or state size is refused. `scale`, `sample_period` [s] and `match`
-    are `bag.read_runs`'s: the units and sample period of a bag without a simulator RunInfo
-    (hardware's), and how its commands are matched to its states. Returns BagWindows; raises
-    BagDataError (ValueError for a bad option).
+    another sample period (`PERIOD_TOLERANCES`: a RunInfo's exactly, a `sample_period` given
+    within 0.01%, the stamps' within 0.1%) or state size is refused. `scale`, `sample_period`
+    [s] and `match` are `bag.read_runs`'s: the units and sample period of a bag without a
+    simulator RunInfo (hardware's), and how its commands are matched to its states. Returns
+    BagWindows; raises BagDataError (ValueError for a bad option).
     """
     bag = os.fspath(path)
     stride = steps if stride is None else int(stride)
@@ -161,13 +166,16 @@ def read_windows(path, steps=DEFAULT_STEPS, namespace=None, h=None, state_dim=No
     if bag_h is None:
         raise BagDataError(bag, 'sample period unknown: no simulator RunInfo, and the states\' '
                            'header stamps do not give one (give the sample period)')
-    # A period read from stamps is measured: it matches the model's within their jitter.
-    tolerance = STAMPS_PERIOD_TOLERANCE if loop.h_source == H_FROM_STAMPS else 1e-9
+    # A period read from stamps is measured, one given is rounded: each matches the model's
+    # within its tolerance.
+    tolerance = PERIOD_TOLERANCES[loop.h_source]
     if h is not None:
         if not math.isclose(bag_h, h, rel_tol=tolerance):
-            raise BagDataError(bag, f'sample period h = {bag_h:g} tau '
-                               f'({loop.scale.tau_to_seconds(bag_h):.4g} s, from '
-                               f'{H_SOURCES[loop.h_source]}); the model needs {h:g} tau')
+            seconds = loop.scale.tau_to_seconds
+            within = '' if loop.h_source == H_FROM_RUN_INFO else f' within {tolerance:.2%}'
+            raise BagDataError(bag, f'sample period h = {bag_h:.6g} tau '
+                               f'({seconds(bag_h):.6g} s, from {H_SOURCES[loop.h_source]}); '
+                               f'the model needs {h:g} tau = {seconds(h):.6g} s{within}')
         bag_h = h
     for each in loops:
         if state_dim is not None and each.x.shape[1] != state_dim:
@@ -323,7 +331,8 @@ def _assumptions(bag, loops, h, scale, sample_period):
     if scale is not None and loop.units == UNITS_FROM_RUN_INFO and scale != loop.scale:
         lines.append(f'{bag}: the units given are not used: the simulator recorded its own')
     if (sample_period is not None and loop.h_source == H_FROM_RUN_INFO
-            and not math.isclose(loop.scale.seconds_to_tau(sample_period), h, rel_tol=1e-9)):
+            and not math.isclose(loop.scale.seconds_to_tau(sample_period), h,
+                                 rel_tol=GIVEN_PERIOD_TOLERANCE)):
         lines.append(f'{bag}: the sample period given is not used: the simulator recorded its '
                      f'own ({loop.scale.tau_to_seconds(h):.6g} s)')
     return lines

@@ -19,9 +19,10 @@ forget the paper's range?). `sampled_ratio` R mixes R sampled Table-1 trajectori
 window into the training data.
 
 A bad bag is a ValueError naming it and what is wrong (every bad bag is named, not only the
-first). With `skip_bad` bad training and held-out bags are skipped with a warning line and
-recorded as skipped in the model's provenance; a bag given both to train and to hold out is
-refused either way, also under another name or as a recovered copy (the same recorded
+first). Below a directory, the bag of a failed deployment (`bag.checks.mark_failed`) is skipped
+with a warning line. With `skip_bad` bad training and held-out bags are skipped with a warning
+line and recorded as skipped in the model's provenance; a bag given both to train and to hold
+out is refused either way, also under another name or as a recovered copy (the same recorded
 messages). Skipping that leaves nothing to test on (no usable held-out bag and no test
 trajectories) is refused too. A crash-truncated bag is not bad: a warning says how much was
 recovered, and its recovered windows are used.
@@ -356,8 +357,11 @@ class BagSet:
 def read_bag_set(bags, held_out, args, config, context, say):
     """Find and read the bags (each rank its shard, rank 0 the held-out ones too), gather what
     every rank found so that all take the same decisions (stop, skip), and say what is used."""
-    train_paths = find_bags(bags)
-    held_paths = find_bags(held_out) if held_out else []
+    skipped = []                       # the bags of failed deployments below a directory
+    train_paths = find_bags(bags, skipped)
+    held_paths = find_bags(held_out, skipped) if held_out else []
+    for line in skipped:
+        say(f'retrain: warning: {line}', file=sys.stderr)
     held_real = {os.path.realpath(p) for p in held_paths}
     both = [p for p in train_paths if os.path.realpath(p) in held_real]
     if both:

@@ -21,17 +21,26 @@ With `autostart` (default true, as nav2's lifecycle manager brings nodes up) the
 and activates itself at start, so `ros2 run` is one command; a failure then stops the process
 with one line (exit 2).
 
-The loop as hardware runs it. The state subscription keeps the newest state only (KEEP_LAST 1):
-a state superseded while the law computed is dropped and counted (`dropped_states`), so the law
-always acts on the plant as it is now, never on a backlog. A run begins where the simulator
-says so (`TsrState.run` changes), never because a step number went back; within a run, a state
-older than one already answered is dropped and counted, and a state repeated exactly (a
-lockstep simulator republishes it when its command is late) gets the command it already got,
-resent. A state that is not finite or that no TSR can be in (`tsr_sim.dynamics.plausible`: a
-length <= 0 or past twice the tether, a swing past pi) is refused and counted and never reaches
-the law or its observer. A compute longer than the period between states is an overrun,
-counted. With no state for `state_timeout` wall seconds the node sends the stop every
-`state_timeout` seconds until states return.
+The loop as hardware runs it. The node answers the newest state only: at each state it takes
+every state queued behind it and answers the newest, so a state superseded while the law
+computed is dropped and counted (`dropped_states`) and the law always acts on the plant as it
+is now, never on a backlog; the queue is deep (STATE_QUEUE_DEPTH), so that no state, the
+simulator's or a stray one, is pushed out of it unseen. Every state queued is checked, in
+order. A state that is not finite or that no TSR can be in (`tsr_sim.dynamics.plausible`: a
+length <= 0 or past twice the tether, a swing past pi) is refused and counted. Only the
+simulator starts a run: a state of another run (`TsrState.run`) starts it when the simulator's
+status (tsr/sim_status) reports that run (a reset, a simulator started), when there is no
+simulator status (a plant that sends states alone), or once no state of the run flown has come
+for `state_timeout` (a restarted simulator; a step back then starts a run too); any other is
+not the simulator's (a stray node, a replayed bag) and is refused and counted
+(`foreign_states`). A refused state reaches neither the law nor its observer and resets
+nothing. (rclpy in Jazzy gives no publisher identity with a message, so a stray state of the
+run flown is not told apart from the simulator's.) Within a run, a state older than one
+already answered is dropped and counted, and a state repeated exactly (a lockstep simulator
+republishes it when its command is late) gets the command it already got, resent. A compute
+longer than the period between states is an overrun, counted. With no state for
+`state_timeout` wall seconds the node sends the stop every `state_timeout` seconds until states
+return.
 
 SI state in, SI tension out; the law (`tsr_koopman_ctrl.control`) works in the paper's
 dimensionless variables, converted through `tsr_sim.units`. Every step goes through
@@ -57,13 +66,14 @@ import sys
 import time
 
 import numpy as np
+from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from tsr_msgs.msg import ControllerStatus, Excitation, RunInfo, TensionCommand, TsrState
 from tsr_sim import dynamics
 from tsr_msgs.msg import SimStatus
 from tsr_sim.ros_io import (declare, declare_scale, given_parameter_names, Health, LATCHED_QOS,
-                            LOOP_PRIORITY, LOOP_PUBLISHER_QOS, MatchedReaders, NEWEST_QOS,
-                            Parameters, run_node, steady_timer)
+                            LOOP_PRIORITY, LOOP_PUBLISHER_QOS, MatchedReaders, Parameters,
+                            run_node, STATE_QOS, STATE_QUEUE_DEPTH, steady_timer)
 from tsr_sim.plant import SCALE_PARAMETERS
 from tsr_sim.units import Scale
 from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, NO_STEP, RUN_INFO_TOPIC,
@@ -81,6 +91,8 @@ from tsr_koopman_ctrl.model.model_file import weights_sha256
 COMPUTE_WINDOW = 1000
 #: Intervals between states kept for the period a compute must fit in (their median).
 PERIOD_WINDOW = 50
+#: Seconds a leaving node waits for its readers to acknowledge the stop (a bounded exit).
+STOP_ACK_TIMEOUT = 2.0
 #: Parameters applied when set; the others (law, settings, scale) are read at configure.
 LIVE = ('max_tension', 'safe_tension', 'state_timeout', 'wait_for_subscribers',
         'wait_for_status_subscribers')
@@ -151,9 +163,9 @@ class ControllerNode(LifecycleNode):
             'the controller status (and excitation) have matched (a recorder)', 0, 1000,
             read_only=False)
         self.counts = {'commands': 0, 'non_finite_states': 0, 'refused_states': 0,
-                       'dropped_states': 0, 'overruns': 0, 'state_timeouts': 0, 'resent': 0,
-                       'runs': 0}
-        self.reported = {'fallbacks': 0, 'non_finite': 0, 'refused': 0}
+                       'foreign_states': 0, 'dropped_states': 0, 'overruns': 0,
+                       'state_timeouts': 0, 'resent': 0, 'runs': 0}
+        self.reported = {'fallbacks': 0, 'non_finite': 0, 'refused': 0, 'foreign': 0}
         self.failure = ''            # why the last configure failed
         self.starting = False
         self.lifecycle_state = UNCONFIGURED
@@ -168,7 +180,7 @@ class ControllerNode(LifecycleNode):
         self.last_state = None       # dimensionless state of the last state taken
         self.refusing = False        # the last state was refused (not finite, no TSR state)
         self.last_refused_wall = 0.0
-        self.sim_status = None       # the simulator's last SimStatus (a halted plant)
+        self.sim_status = None       # the simulator's last SimStatus (the run it is in, a halt)
         self.compute_seconds = deque(maxlen=COMPUTE_WINDOW)
         self.intervals = deque(maxlen=PERIOD_WINDOW)
         # The command writer exists from configure on (created there, after the law is warm),
@@ -183,7 +195,8 @@ class ControllerNode(LifecycleNode):
         self.excitation_readers = MatchedReaders()
         self.run_info_pub = self.create_publisher(RunInfo, RUN_INFO_TOPIC, LATCHED_QOS)
         self.excitation_pub = None
-        self.create_subscription(TsrState, STATE_TOPIC, self.on_state, NEWEST_QOS)
+        self.state_sub = self.create_subscription(TsrState, STATE_TOPIC, self.on_state,
+                                                  STATE_QOS)
         self.create_subscription(SimStatus, SIM_STATUS_TOPIC,
                                  lambda msg: setattr(self, 'sim_status', msg), LATCHED_QOS)
         self.timeout_timer = steady_timer(self, self.state_timeout, self.check_state_timeout)
@@ -380,13 +393,58 @@ class ControllerNode(LifecycleNode):
             self.get_logger().info(f'waiting for {missing}', throttle_duration_sec=5.0)
             return
         now = time.monotonic()
+        newest = None
+        for state in self.queued_states(msg):
+            admitted = self.admit(state, now)
+            if admitted is not None:
+                newest = (state, *admitted)
+        if newest is not None:
+            self.answer(*newest, now)
+
+    def queued_states(self, first):
+        """`first` and the states queued behind it, oldest first; at most a queue's worth, so
+        that a flood cannot hold the node here."""
+        yield first
+        # Taken as rclpy's executors take (their events for these then find nothing left).
+        handle = self.state_sub.handle
+        for _ in range(STATE_QUEUE_DEPTH):
+            with handle:
+                taken = handle.take_message(TsrState, self.state_sub.raw)
+            if taken is None:
+                return
+            yield taken[0]
+
+    def admit(self, msg, now):
+        """(SI state, dimensionless state) of a state the law may take; None for one it must
+        not, counted: not finite or no TSR state (`refuse`), or not the simulator's
+        (`count_foreign`)."""
         si = state_from_msg(msg, dynamics.PLANAR_DIM)
         x = self.scale.state_from_si(si)
         refused = self.step.check(x)
         if refused is not None:      # before anything else: a stray message changes nothing
             self.refuse(msg, x, refused)
-            return
+            return None
+        if msg.run != self.run and not self.run_started(msg.run, now):
+            self.count_foreign(msg)
+            return None
         self.refusing = False
+        return si, x
+
+    def run_started(self, run, now):
+        """Whether the simulator started `run`, the run of a state that is not the run flown:
+        its status reports that run, or there is no simulator status (a plant that sends
+        states alone), or the run flown has been silent for state_timeout (the simulator was
+        restarted)."""
+        status = self.sim_status
+        return status is None or status.run == run or self.run_silent(now)
+
+    def run_silent(self, now):
+        """No state of the run flown answered for state_timeout (the stop is being sent)."""
+        return now - self.last_state_wall >= self.state_timeout
+
+    def answer(self, msg, si, x, now):
+        """The command for a state admitted: resent for a repeat, none for one older than the
+        run's latest; the law's otherwise."""
         key = (msg.run, msg.step, si.tobytes())
         if self.last_answer is not None and self.last_answer[0] == key:
             self.last_state_wall = now
@@ -399,10 +457,14 @@ class ControllerNode(LifecycleNode):
         if msg.run != self.run:
             self.new_run(msg.run)
         elif msg.step <= self.last_step:
-            self.counts['dropped_states'] += 1      # older than one taken: out of order
-            self.get_logger().warning(f'state of step {msg.step} after step {self.last_step} '
-                                      'of the same run: dropped', throttle_duration_sec=1.0)
-            return
+            if self.run_silent(now):
+                self.new_run(msg.run)       # a step back after a silence: a new simulator
+            else:
+                self.counts['dropped_states'] += 1      # older than one taken: out of order
+                self.get_logger().warning(f'state of step {msg.step} after step '
+                                          f'{self.last_step} of the same run: dropped',
+                                          throttle_duration_sec=1.0)
+                return
         elif self.last_step >= 0:
             elapsed = msg.step - self.last_step
             self.counts['dropped_states'] += elapsed - 1       # superseded while computing
@@ -447,10 +509,17 @@ class ControllerNode(LifecycleNode):
             throttle_duration_sec=1.0)
         self.publish_status(msg.step, msg.header.stamp, int(outcome))
 
+    def count_foreign(self, msg):
+        """A state of a run the simulator did not start: another publisher's (a stray node, a
+        replayed bag). Counted, no command, no status (it is no step of the run)."""
+        self.counts['foreign_states'] += 1
+        self.get_logger().warning(
+            f'state of run {msg.run} (step {msg.step}) while the simulator is in run '
+            f"{self.sim_status.run}: not the simulator's, refused", throttle_duration_sec=1.0)
+
     def new_run(self, run):
-        """The simulator started a new run (`TsrState.run` changed): the law and its observer
-        start afresh. A stray state of another run would do the same: its run is no worse a
-        sign than its step, but a reset is what the counter exists to announce."""
+        """The simulator started a run (`run_started`, or it came back after a silence): the
+        law, its observer and the excitation start afresh."""
         if self.run is not None:
             self.counts['runs'] += 1
             self.step.reset()
@@ -504,9 +573,10 @@ class ControllerNode(LifecycleNode):
         tension, a state was refused since the last report or refused states keep coming
         (ERROR while the fault lasts; not for state_timeout: that is the stale-input
         warning), the plant is tumbling (|theta| past the tumbling swing) or the
-        simulator halted the run; WARN when not active, while the supervisor's fallback flies,
-        when the law's solver fell back, states were dropped or computes overran since the
-        last report, or no state came for state_timeout; OK otherwise."""
+        simulator halted the run; WARN when not active, when states not the simulator's were
+        refused since the last report, while the supervisor's fallback flies, when the law's
+        solver fell back, states were dropped or computes overran since the last report, or no
+        state came for state_timeout; OK otherwise."""
         law = self.law
         fallbacks = law.fallbacks if law else 0
         values = {'lifecycle_state': STATE_LABELS[self.lifecycle_state],
@@ -527,6 +597,7 @@ class ControllerNode(LifecycleNode):
             values.update(law.diagnostics())
         new = {'fallbacks': fallbacks, 'non_finite': self.non_finite_outputs,
                'refused': self.counts['non_finite_states'] + self.counts['refused_states'],
+               'foreign': self.counts['foreign_states'],
                'late': self.counts['dropped_states'] + self.counts['overruns']}
         grown = {k for k, v in new.items() if v > self.reported.get(k, 0)}
         self.reported = new
@@ -546,6 +617,9 @@ class ControllerNode(LifecycleNode):
             return Health.ERROR, 'the robot is tumbling', values
         if not self.active:
             return Health.WARN, f'{STATE_LABELS[self.lifecycle_state]}: not commanding', values
+        if 'foreign' in grown:
+            return Health.WARN, (f"{self.counts['foreign_states']} states not the simulator's "
+                                 'refused (of a run it did not start)'), values
         if law is not None and law.flying == 'fallback':
             return Health.WARN, f'the fallback law flies (monitor: {law.monitor or "trusted"})', \
                 values
@@ -559,11 +633,17 @@ class ControllerNode(LifecycleNode):
 
     def stop_if_active(self, why):
         """An active controller leaving: the stop, so the plant holds now and not at its
-        command timeout."""
+        command timeout. The node waits (at most STOP_ACK_TIMEOUT) until every reader has
+        acknowledged it: a writer destroyed before then takes the stop with it."""
         if self.active and self.pub is not None:
             self.publish_stop(ControllerStatus.SAFE_TENSION)
             self.active = False
-            self.get_logger().info(f'{why}: the stop sent')
+            if self.pub.wait_for_all_acked(Duration(seconds=STOP_ACK_TIMEOUT)):
+                self.get_logger().info(f'{why}: the stop sent and acknowledged')
+            else:
+                self.get_logger().warning(f'{why}: the stop sent, not acknowledged within '
+                                          f'{STOP_ACK_TIMEOUT:g} s (a reader gone or '
+                                          'unreachable: the plant holds at its own timeout)')
 
     def close(self):
         """Process exit (a signal, or `done`): the stop first, as a shutdown transition."""
@@ -579,7 +659,8 @@ class ControllerNode(LifecycleNode):
                   f'{len(times)}), clamped {self.limiter.clamped if self.limiter else 0}, '
                   f'solver fallbacks {self.law.fallbacks if self.law else 0}, non-finite '
                   f'states {self.counts["non_finite_states"]}, refused states '
-                  f'{self.counts["refused_states"]}, dropped states '
+                  f'{self.counts["refused_states"]}, foreign states '
+                  f'{self.counts["foreign_states"]}, dropped states '
                   f'{self.counts["dropped_states"]}, overruns {self.counts["overruns"]}, state '
                   f'timeouts {self.counts["state_timeouts"]}, repeated states resent '
                   f'{self.counts["resent"]}, supervisor switches '

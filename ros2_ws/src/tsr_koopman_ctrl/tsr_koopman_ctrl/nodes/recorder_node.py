@@ -162,9 +162,7 @@ class RecorderNode(Node):
     def record(self, topic, data, info):
         if topic in self.writer.qos_pending:      # first message before the timer saw them
             self.learn_qos(topic)
-        clock = self.get_clock()       # rosbag2 logs on the node's clock under use_sim_time only
-        self.writer.write_received(
-            topic, data, info, clock.now().nanoseconds if clock.ros_time_is_active else None)
+        self.writer.write_received(topic, data, info)
 
     def subscribe(self, topic, type_name, publishers, latched=False):
         """Subscribe raw; with no publisher known yet: reliable, and volatile (matches any)
