@@ -53,23 +53,29 @@ def modules():
             yield (name[:-len('.__init__')] if name.endswith('.__init__') else name), path
 
 
-def imports(path, name, names=False):
-    """The modules `path` imports; `names`: also `module.name` for each name of a
-    `from module import name` (a submodule imported so)."""
+def import_statements(path, name):
+    """(module, [names]) of each import in `path` (names: those of a `from module import`)."""
     tree = ast.parse(path.read_text())
     package = name if path.name == '__init__.py' else name.rpartition('.')[0]
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            yield from (alias.name for alias in node.names)
+            yield from ((alias.name, []) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.rsplit('.', node.level - 1)[0] if node.level > 1 else package
                 module = f'{base}.{node.module}' if node.module else base
             else:
                 module = node.module
-            yield module
-            if names:
-                yield from (f'{module}.{alias.name}' for alias in node.names)
+            yield module, [alias.name for alias in node.names]
+
+
+def imports(path, name, names=False):
+    """The modules `path` imports; `names`: also `module.name` for each name of a
+    `from module import name` (a submodule imported so)."""
+    for module, imported in import_statements(path, name):
+        yield module
+        if names:
+            yield from (f'{module}.{alias}' for alias in imported)
 
 
 @pytest.mark.parametrize('name, path', list(modules()), ids=lambda v: str(v))
@@ -92,10 +98,74 @@ def test_the_laws_never_import_the_figures_and_the_product_never_the_lab():
 
 def test_the_lab_never_imports_the_commands():
     """The commands are parse -> call -> print over the public API; the lab calls that API
-    (learning.data, bag.files, control.settings.parse_assignments, arguments), not a command's
+    (learning.data, bag.files, control.registry.parse_assignments, arguments), not a command's
     main or its internals."""
     found = [(name, target) for name, path in modules() if name.startswith('lab')
              for target in imports(path, name, names=True)
              if target == 'tsr_koopman_ctrl.commands'
              or target.startswith('tsr_koopman_ctrl.commands.')]
     assert found == []
+
+
+CONTROL = 'tsr_koopman_ctrl.control'
+
+
+def control_imports(name, path, submodules):
+    """The control modules `name` imports, inside functions too: each submodule, and the
+    package itself for a name its __init__ gives (`from tsr_koopman_ctrl.control import
+    CONTROLLERS`)."""
+    found = set()
+    for module, imported in import_statements(path, name):
+        if module in submodules:
+            found.add(module)
+        elif module == CONTROL:
+            given = {f'{module}.{alias}' for alias in imported}
+            found |= given & submodules
+            if given - submodules:
+                found.add(CONTROL)
+    return found - {name}
+
+
+def control_graph():
+    """{control module: the control modules it imports}, the package's __init__ included."""
+    control = {name: path for name, path in modules()
+               if name == CONTROL or name.startswith(CONTROL + '.')}
+    submodules = set(control) - {CONTROL}
+    return {name: control_imports(name, path, submodules) for name, path in control.items()}
+
+
+def test_the_laws_settings_import_nothing_of_control():
+    """Every law imports control/settings.py: it stands on tsr_sim's schema alone, imports
+    inside functions included (a lazy one closed a circle through the registry)."""
+    graph = control_graph()
+    assert graph[f'{CONTROL}.settings'] == set()
+
+
+def test_no_import_cycle_among_the_control_modules():
+    graph = control_graph()
+    cycles, state = [], {}
+
+    def visit(module, path):
+        state[module] = 'open'
+        for target in sorted(graph.get(module, ())):
+            if state.get(target) == 'open':
+                cycles.append(path[path.index(target):] + [target])
+            elif target not in state:
+                visit(target, path + [target])
+        state[module] = 'done'
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+    assert cycles == [], 'import cycles in control/: ' + '; '.join(
+        ' -> '.join(m.rpartition('.')[2] or m for m in cycle) for cycle in cycles)
+
+
+#: Modules whose owners still call difflib themselves (each to use `schema.did_you_mean`).
+OWN_DID_YOU_MEAN = {'tsr_koopman_ctrl.campaign.spec'}
+
+
+def test_one_did_you_mean():
+    """Every refusal of an unknown name hints alike: one function (`tsr_sim.schema.did_you_mean`)
+    and no other caller of difflib."""
+    callers = {name for name, path in modules() if 'difflib' in imports(path, name)}
+    assert callers - OWN_DID_YOU_MEAN == {'tsr_sim.schema'}

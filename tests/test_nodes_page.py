@@ -2,8 +2,9 @@
 its node declares, with the defaults the code declares, and the controller's diagnostics keys
 are the ones its `diagnose` and the default law's `diagnostics()` report.
 
-The nodes import rclpy and the built messages, so their declarations are read from the source
-(`declare(node, 'name', default, ...)`) and the shared tables (`tsr_sim.plant`) imported."""
+The nodes import rclpy and the built messages; what they declare is in their schema classes
+(`tsr_sim.schema`), which are ROS-free: `tsr_sim.plant`, `tsr_sim.node_parameters`,
+`nodes.controller_parameters`, `nodes.recorder_parameters`."""
 
 import ast
 import math
@@ -11,6 +12,7 @@ import re
 
 from conftest import ROOT
 import pytest
+from tsr_sim.schema import fields
 
 PAGE = (ROOT / 'docs' / 'nodes.md').read_text()
 SIM = ROOT / 'ros2_ws' / 'src' / 'tsr_sim' / 'tsr_sim'
@@ -95,14 +97,10 @@ def module_constants(path):
     return values
 
 
-def declarations(path):
-    """{name: default AST node} of every `declare(node, 'name', default, ...)` in a module."""
-    found = {}
-    for node in ast.walk(tree(path)):
-        if isinstance(node, ast.Call) and getattr(node.func, 'id', None) == 'declare' and \
-                isinstance(node.args[1], ast.Constant):
-            found[node.args[1].value] = node.args[2]
-    return found
+def schema_defaults(*schemas):
+    """{name: default} of the fields of schema classes (a sequence as a list)."""
+    return {name: list(default) if isinstance(default, tuple) else default
+            for schema in schemas for name, default, _ in fields(schema)}
 
 
 def loop_priority(path):
@@ -116,24 +114,12 @@ def loop_priority(path):
 
 
 def computed_defaults():
-    """The defaults the nodes compute from the units (a default of None in tsr_sim.plant, a
-    call in the node's declare): in newtons at the default units."""
+    """The defaults the simulator computes from the units (a default of None in its schema):
+    in newtons at the default units."""
     from tsr_sim import dynamics
     from tsr_sim.units import Scale
     return {'max_tension': Scale().u_to_tension(dynamics.TENSION_LIMIT),
             'safe_tension': Scale().u_to_tension(dynamics.EQUILIBRIUM_TENSION)}
-
-
-def code_value(name, node, names):
-    """A declared default as a value: a literal, a constant expression, a name `names` knows,
-    or a default computed from the units."""
-    if isinstance(node, ast.IfExp):
-        node = node.body      # the default when the node is given nothing
-    if isinstance(node, ast.Name):
-        return names.get(node.id)      # None: not a literal (a list built in the module)
-    if isinstance(node, ast.Call):
-        return computed_defaults()[name]
-    return eval(compile(ast.Expression(node), '<default>', 'eval'), {})
 
 
 def assert_defaults_agree(table, defaults):
@@ -159,27 +145,26 @@ def assert_defaults_agree(table, defaults):
 
 def simulator_defaults():
     from tsr_sim import plant, units
-    io = module_constants(SIM / 'ros_io.py')
-    defaults = {name: spec[0] for name, spec in
-                {**plant.PLANT_PARAMETERS, **plant.SIMULATOR_PARAMETERS}.items()}
+    from tsr_sim.node_parameters import ProcessSettings, ScaleSettings, SimulatorNodeSettings
+    defaults = schema_defaults(plant.PlantSettings, SimulatorNodeSettings, ScaleSettings,
+                               ProcessSettings)
     defaults.update({name: value for name, value in computed_defaults().items()
                      if defaults.get(name, 0) is None})
-    defaults.update(orbit_rate=units.PAPER_ORBIT_RATE, tether_length=units.PAPER_TETHER_LENGTH,
-                    mass=units.DEFAULT_MASS, threads=io['DEFAULT_THREADS'],
-                    thread_priority=loop_priority(SIM / 'sim_node.py'))
+    defaults.update(thread_priority=loop_priority(SIM / 'sim_node.py'))
+    assert (defaults['orbit_rate'], defaults['tether_length'], defaults['mass']) == (
+        units.PAPER_ORBIT_RATE, units.PAPER_TETHER_LENGTH, units.DEFAULT_MASS)
     assert set(plant.SCALE_PARAMETERS) == {'orbit_rate', 'tether_length', 'mass'}
     return defaults
 
 
 def controller_defaults():
-    from tsr_koopman_ctrl.control import registry
+    from tsr_koopman_ctrl.nodes.controller_parameters import ControllerNodeSettings
     from tsr_sim import plant
-    io = module_constants(SIM / 'ros_io.py')
+    from tsr_sim.node_parameters import ProcessSettings
     path = CTRL / 'nodes' / 'controller_node.py'
-    defaults = {name: code_value(name, node, {'DEFAULT_LAW': registry.DEFAULT_LAW})
-                for name, node in declarations(path).items()}
+    defaults = schema_defaults(ControllerNodeSettings, ProcessSettings)
     defaults.update({name: None for name in plant.SCALE_PARAMETERS})      # declare_scale
-    defaults.update(threads=io['DEFAULT_THREADS'], thread_priority=loop_priority(path))
+    defaults.update(thread_priority=loop_priority(path))
     return defaults
 
 
@@ -207,17 +192,16 @@ def test_the_controller_table_lists_what_the_controller_declares_with_its_defaul
 
 def test_the_page_gives_the_controller_s_default_law():
     from tsr_koopman_ctrl.control import registry
-    declared = declarations(CTRL / 'nodes' / 'controller_node.py')['law']
-    assert isinstance(declared, ast.Name) and declared.id == 'DEFAULT_LAW'
+    from tsr_koopman_ctrl.nodes.controller_parameters import ControllerNodeSettings
+    assert ControllerNodeSettings().law == registry.DEFAULT_LAW
     assert page_value(documented('**Controller**')['law']) == registry.DEFAULT_LAW
 
 
 def test_the_recorder_table_lists_what_the_recorder_declares_with_its_defaults():
     path = CTRL / 'nodes' / 'recorder_node.py'
     table = documented('**Recorder**')
-    names = module_constants(path)
-    defaults = {name: code_value(name, node, names)
-                for name, node in declarations(path).items()}
+    from tsr_koopman_ctrl.nodes.recorder_parameters import RecorderNodeSettings
+    defaults = schema_defaults(RecorderNodeSettings)
     assert set(table) == set(defaults), (
         f'on the page only: {sorted(set(table) - set(defaults))}; '
         f'declared only: {sorted(set(defaults) - set(table))}')

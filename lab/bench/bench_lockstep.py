@@ -14,8 +14,7 @@ import tempfile
 from tsr_sim.wire import resolve, STATE_TOPIC
 
 from tsr_koopman_ctrl.bag import BagReader
-from tsr_koopman_ctrl.control.registry import DEFAULT_LAW
-from tsr_koopman_ctrl.control.settings import parse_assignments
+from tsr_koopman_ctrl.control.registry import DEFAULT_LAW, parse_assignments
 from tsr_koopman_ctrl.deployment import Deployment
 
 # Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.

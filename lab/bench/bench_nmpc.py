@@ -38,7 +38,7 @@ import numpy as np
 
 from tsr_koopman_ctrl.control import closed_loop, make_controller, nmpc
 from tsr_koopman_ctrl.control.offset_free import OffsetFree
-from tsr_koopman_ctrl.control.settings import parse_assignments
+from tsr_koopman_ctrl.control.registry import parse_assignments
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS
 
 # Run as a script (python lab/bench/<name>.py): the repository root on the path, for lab/.

@@ -29,7 +29,7 @@ import numpy as np
 from tsr_sim import dynamics
 
 from tsr_koopman_ctrl.control import closed_loop, make_controller
-from tsr_koopman_ctrl.control.settings import parse_assignments
+from tsr_koopman_ctrl.control.registry import parse_assignments
 from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, frontier_tau, HELD_OUT_STARTS,
                                          run_figures)
 

@@ -57,7 +57,8 @@ def test_the_example_law_flies_the_paper_s_deployment_as_the_page_shows(example)
 
 def test_once_registered_every_tool_picks_it_up(registered):
     from tsr_koopman_ctrl.commands.config import example_yaml
-    from tsr_koopman_ctrl.control.settings import parse_assignments, unknown_setting_names
+    from tsr_koopman_ctrl.control.registry import parse_assignments
+    from tsr_koopman_ctrl.control.settings import unknown_setting_names
     from lab import compare
     from lab.tuning.space import tunable
     law = make_controller('fixed_gain')

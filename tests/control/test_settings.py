@@ -71,8 +71,9 @@ def test_command_line_values_take_the_setting_type():
 
 
 def test_assignments_parse_into_sections_once_for_deploy_and_the_lab():
-    """SECTION.SETTING=VALUE: one parser (control.settings) for deploy's --set and the lab's."""
-    from tsr_koopman_ctrl.control.settings import parse_assignments
+    """SECTION.SETTING=VALUE: one parser (control.registry, over control.settings) for
+    deploy's --set and the lab's."""
+    from tsr_koopman_ctrl.control.registry import parse_assignments
     assert parse_assignments(['koopman_mpc.horizon=8', 'observer.disturbance=none',
                               'koopman_mpc.q=1,2,3,4', 'supervisor.fallback=none']) == {
         'koopman_mpc': {'horizon': 8, 'q': (1.0, 2.0, 3.0, 4.0)},

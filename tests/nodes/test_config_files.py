@@ -13,6 +13,7 @@ from tsr_koopman_ctrl.launcher import executable
 from conftest import ROOT
 
 CONFIG = ROOT / 'ros2_ws' / 'src' / 'tsr_koopman_ctrl' / 'config'
+SIM_CONFIG = ROOT / 'ros2_ws' / 'src' / 'tsr_sim' / 'config'
 
 
 def test_controller_config_is_derived_from_the_law_settings():
@@ -25,6 +26,13 @@ def test_controller_config_is_derived_from_the_law_settings():
     assert params['linear_lqr']['q'] == list(LinearisedLqr.Settings().q)
 
 
+def test_the_sim_and_recorder_configs_are_derived_from_their_schemas():
+    """The simulator's and the recorder's files too equal what their schema classes write
+    (python -m tsr_koopman_ctrl.commands.config --node sim|recorder)."""
+    assert (SIM_CONFIG / 'sim.yaml').read_text() == example_yaml('sim')
+    assert (CONFIG / 'recorder.yaml').read_text() == example_yaml('recorder')
+
+
 def test_recorder_config_records_the_loop_topics():
     from tsr_sim import wire
     params = yaml.safe_load((CONFIG / 'recorder.yaml').read_text())
@@ -32,12 +40,12 @@ def test_recorder_config_records_the_loop_topics():
 
 
 def test_the_sim_example_holds_the_simulator_s_names_and_defaults():
-    """config/sim.yaml is written by hand ("values shown are the defaults"): a misspelt name
-    there would be dropped by ROS without a word."""
+    """config/sim.yaml holds the defaults under the simulator's names: a misspelt name there
+    would be dropped by ROS without a word."""
     from tsr_sim import dynamics
     from tsr_sim.plant import PLANT_PARAMETERS, SIMULATOR_PARAMETERS
     from tsr_sim.units import Scale
-    path = ROOT / 'ros2_ws/src/tsr_sim/config/sim.yaml'
+    path = SIM_CONFIG / 'sim.yaml'
     values = yaml.safe_load(path.read_text())['/**/tsr_sim']['ros__parameters']
     scale = Scale()
     defaults = {name: spec[0] for name, spec in {**PLANT_PARAMETERS,

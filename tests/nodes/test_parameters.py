@@ -115,9 +115,32 @@ EXPECTED_LIVE = {'tsr_sim': {'progress_every', 'republish_period'},
                  'tsr_recorder': {'flush_period', 'silence_warning'}}
 
 
+def schema_descriptors(node):
+    """{name: (description, read only, integer range, floating-point range)} of what `node`
+    declares, as its schema classes (`test_parameter_schemas.node_schemas`) describe it."""
+    import dataclasses
+    from test_parameter_schemas import node_schemas
+    from tsr_sim import ros_io
+    from tsr_sim.schema import AT_CONFIGURE, AT_START
+    expected = {}
+    for section, schema in node_schemas()[node]:
+        # The controller reads the law sections and the units at configure.
+        applied = AT_CONFIGURE if node == 'tsr_controller' and (
+            section or schema.__name__ == 'ScaleSettings') else None
+        for field in dataclasses.fields(schema):
+            default = 1.0 if field.default is None else field.default  # computed: a float
+            read_only = (applied or field.metadata['applied']) == AT_START
+            d = ros_io.parameter_descriptor(field.metadata, default, read_only)
+            name = f'{section}.{field.name}' if section else field.name
+            expected[name] = (d.description, d.read_only, list(d.integer_range),
+                              list(d.floating_point_range))
+    return expected
+
+
 def test_every_number_has_a_range(ros, start_node, tmp_path):
     """`ros2 param describe` shows a range for every numeric parameter of the three nodes
-    (rclpy's own aside), and read-only for what is not applied live."""
+    (rclpy's own aside), and read-only for what is not applied live: each parameter as its
+    schema class declares it, and no other."""
     from rcl_interfaces.msg import ParameterType
     from rcl_interfaces.srv import DescribeParameters, ListParameters
     for node in EXECUTABLES:
@@ -137,6 +160,10 @@ def test_every_number_has_a_range(ros, start_node, tmp_path):
         read_only = {d.name for d in descriptors if d.read_only}
         settable = set(names) - read_only
         assert EXPECTED_READ_ONLY[node] <= read_only and EXPECTED_LIVE[node] <= settable, node
+        described = {d.name: (d.description, d.read_only, list(d.integer_range),
+                              list(d.floating_point_range)) for d in descriptors
+                     if d.name not in ('use_sim_time', 'start_type_description_service')}
+        assert described == schema_descriptors(node), node
 
 
 def test_the_config_files_are_keyed_for_any_namespace():

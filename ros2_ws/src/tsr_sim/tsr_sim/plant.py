@@ -13,8 +13,9 @@ import math
 import numpy as np
 
 from tsr_sim import dynamics, variants
+from tsr_sim.node_parameters import ScaleSettings, SimulatorNodeSettings
+from tsr_sim.schema import did_you_mean, LIVE, parameter_table, setting, Settings
 from tsr_sim.units import Scale
-from tsr_sim.wire import STATE_FRAME
 
 
 class Rejection(enum.Enum):
@@ -82,74 +83,56 @@ class PlantConfig:
             setattr(self, name, std)
 
 
-#: The simulator's plant parameters, declared once: name -> (default, description, low, high).
-#: The simulator node declares them as ROS parameters; `config_from_parameters` turns a mapping
-#: of them (the node's values, or a plant file under config/plants/) into a PlantConfig.
-PLANT_PARAMETERS = {
-    'initial_state': (dynamics.PAPER_INITIAL_STATE.tolist(),
-                      "dimensionless [theta, theta', l-1, l'] (6 values add beta, beta')",
-                      None, None),
-    'step': (dynamics.PAPER_STEP, 'sample period h [tau]', 1e-6, 10.0),
-    'substeps': (10, 'RK4 substeps per sample period', 1, 10000),
-    'max_steps': (0, 'stop after this many steps (0: never)', 0, 10 ** 12),
-    'max_swing': (dynamics.TUMBLING_SWING, '|theta| past which the robot is tumbling: the run '
-                  'halts as when the state leaves the domain [rad]', 0.01, 100.0),
-    'process_noise_std': ([0.0], 'dimensionless std per state component, added per step '
-                          '([0.0]: none)', None, None),
-    'sensor_noise_std': ([0.0], 'dimensionless std per component of the published state '
-                         '([0.0]: none)', None, None),
-    'seed': (0, 'noise seed', 0, 2 ** 31 - 1),
-    'actuator_gain': (1.0, 'tension actuator: applied / commanded tension', 1e-3, 100.0),
-    'actuator_bias': (0.0, 'tension actuator: bias added to the applied tension [N]', -1e6, 1e6),
-    'actuator_lag': (0.0, 'tension actuator: first-order time constant [tau] (0: none)', 0.0,
-                     100.0),
-    'eccentricity': (0.0, 'orbit eccentricity (0: circular, the nominal model)', 0.0, 0.99),
-    'initial_anomaly': (0.0, 'true anomaly at the start [rad] (eccentric orbit)', -7.0, 7.0),
-    'out_of_plane': (False, 'start the 3-D model with initial_beta appended to the state',
-                     None, None),
-    'initial_beta': ([0.0, 0.0], "out_of_plane: [beta, beta'] at the start (rad, "
-                     'dimensionless rate)', None, None),
-    'hold_gain': (dynamics.HOLD_GAIN, "the reel hold engaged when the controller stops or is "
-                  "lost: l'' = -hold_gain l' (a speed loop to zero, as a brake; the tension "
-                  'within [0, max_tension]) [1/tau]; 0: no hold, the last tension is held',
-                  0.0, 1e3),
-}
+@dataclasses.dataclass(frozen=True)
+class PlantSettings(Settings):
+    """The simulator's plant parameters, declared once (`tsr_sim.schema`): the simulator node
+    declares them as ROS parameters; `config_from_parameters` turns a mapping of them (the
+    node's values, or a plant file under config/plants/) into a PlantConfig."""
+
+    initial_state: tuple = setting(dynamics.PAPER_INITIAL_STATE.tolist(),
+                                   "dimensionless [theta, theta', l-1, l'] (6 values add beta, "
+                                   "beta')", fixed_length=False)
+    step: float = setting(dynamics.PAPER_STEP, 'sample period h [tau]', low=1e-6, high=10.0)
+    substeps: int = setting(10, 'RK4 substeps per sample period', low=1, high=10000)
+    max_steps: int = setting(0, 'stop after this many steps (0: never)', low=0, high=10 ** 12,
+                             applied=LIVE)
+    max_swing: float = setting(dynamics.TUMBLING_SWING, '|theta| past which the robot is '
+                               'tumbling: the run halts as when the state leaves the domain '
+                               '[rad]', low=0.01, high=100.0)
+    process_noise_std: tuple = setting([0.0], 'dimensionless std per state component, added '
+                                       'per step ([0.0]: none)', fixed_length=False)
+    sensor_noise_std: tuple = setting([0.0], 'dimensionless std per component of the '
+                                      'published state ([0.0]: none)', fixed_length=False)
+    seed: int = setting(0, 'noise seed', low=0, high=2 ** 31 - 1)
+    actuator_gain: float = setting(1.0, 'tension actuator: applied / commanded tension',
+                                   low=1e-3, high=100.0)
+    actuator_bias: float = setting(0.0, 'tension actuator: bias added to the applied tension '
+                                   '[N]', low=-1e6, high=1e6)
+    actuator_lag: float = setting(0.0, 'tension actuator: first-order time constant [tau] (0: '
+                                  'none)', low=0.0, high=100.0)
+    eccentricity: float = setting(0.0, 'orbit eccentricity (0: circular, the nominal model)',
+                                  low=0.0, high=0.99)
+    initial_anomaly: float = setting(0.0, 'true anomaly at the start [rad] (eccentric orbit)',
+                                     low=-7.0, high=7.0)
+    out_of_plane: bool = setting(False, 'start the 3-D model with initial_beta appended to the '
+                                 'state')
+    initial_beta: tuple = setting([0.0, 0.0], "out_of_plane: [beta, beta'] at the start (rad, "
+                                  'dimensionless rate)')
+    hold_gain: float = setting(dynamics.HOLD_GAIN, "the reel hold engaged when the controller "
+                               "stops or is lost: l'' = -hold_gain l' (a speed loop to zero, as "
+                               'a brake; the tension within [0, max_tension]) [1/tau]; 0: no '
+                               'hold, the last tension is held', low=0.0, high=1e3)
 
 
-SCALE_PARAMETERS = ('orbit_rate', 'tether_length', 'mass')
-
-#: The simulator node's other parameters, declared once: name -> (default, description, low,
-#: high); a default of None is computed from the units (the node passes it). The node declares
-#: these, PLANT_PARAMETERS and SCALE_PARAMETERS, nothing else (rclpy adds its own).
-SIMULATOR_PARAMETERS = {
-    'mode': ('lockstep', 'lockstep or timed', None, None),
-    'plant': ('nominal', 'name of the plant variant (recorded in the bag; the variant itself is '
-              'set by the plant parameters, e.g. from config/plants/<name>.yaml)', None, None),
-    'max_tension': (None, f'largest accepted tension [N] (default: u = '
-                    f'{dynamics.TENSION_LIMIT:g})', 1e-9, 1e9),
-    'command_timeout': (1.0, 'timed mode: wall seconds without a valid command before the '
-                        'plant holds (the reel hold, or safe_tension without one)', 0.001,
-                        3600.0),
-    'safe_tension': (None, 'timed mode, a plant without a reel hold (hold_gain 0): tension [N] '
-                     'held when the controller stops or is lost (default: the equilibrium '
-                     'tension u = 3)', 0.0, 1e9),
-    'republish_period': (0.5, 'lockstep: wall seconds without a command before the state is '
-                         'published again', 0.01, 60.0),
-    'progress_every': (100, 'log a progress line every N steps (0: never)', 0, 10 ** 9),
-    'wait_for_subscribers': (0, 'lockstep: publish no state until this many readers of the '
-                             'state topic have matched, at the DDS level (controller, '
-                             'recorder)', 0, 1000),
-    'exit_on_finish': (False, 'shut the node down when max_steps is reached or the state '
-                       'leaves the domain', None, None),
-    'rate_hz': (100.0, 'timed: simulation steps per wall second', 0.01, 1e5),
-    'clock_start': ('command', "timed: when each run's clock starts (the first and after "
-                    "each reset): 'command', at the first command answering the run's first "
-                    "state (the plant waits for its controller's go, as hardware does); "
-                    "'matched', once a writer of tension commands (a controller) has matched, "
-                    "at the DDS level; 'now', at once", None, None),
-    'frame_id': (STATE_FRAME, 'frame of the published state (header.frame_id): the orbital '
-                 'frame', None, None),
-}
+#: The plant's parameters as name -> (default, description, low, high), derived from
+#: PlantSettings (read-only).
+PLANT_PARAMETERS = parameter_table(PlantSettings)
+SCALE_PARAMETERS = tuple(field.name for field in dataclasses.fields(ScaleSettings))
+#: The simulator node's other parameters as name -> (default, description, low, high), derived
+#: from `node_parameters.SimulatorNodeSettings` (read-only); a default of None is computed from
+#: the units (the node passes it). The node declares these, PLANT_PARAMETERS and
+#: SCALE_PARAMETERS, nothing else (rclpy and `run_node` add their own).
+SIMULATOR_PARAMETERS = parameter_table(SimulatorNodeSettings)
 
 #: What a plant file (config/plants/*.yaml, `deploy --plant`, `closed_loop(plant=...)`) may
 #: set: the plant, its units, its tension limit and its name.
@@ -159,11 +142,9 @@ PLANT_FILE_PARAMETERS = (*PLANT_PARAMETERS, *SCALE_PARAMETERS, 'max_tension', 'p
 def check_plant_parameter_names(names, source):
     """ValueError naming `source` and the first name that is not a plant parameter (ROS would
     drop a misspelt one without a word), with the closest one if there is one."""
-    import difflib
     for name in sorted(set(names) - set(PLANT_FILE_PARAMETERS), key=str):
-        close = difflib.get_close_matches(str(name), PLANT_FILE_PARAMETERS, n=1)
-        hint = f' (did you mean {close[0]!r}?)' if close else ''
-        raise ValueError(f'{source}: {name!r} is not a plant parameter{hint}')
+        raise ValueError(f'{source}: {name!r} is not a plant parameter'
+                         f'{did_you_mean(name, PLANT_FILE_PARAMETERS)}')
 
 
 def config_from_parameters(values, scale=None):

@@ -7,12 +7,13 @@ Conventions every node follows here:
 - watchdogs and housekeeping timers run on the steady clock (`steady_timer`), so a node works
   with `use_sim_time` true or false: a timer on sim time would wait for a /clock that a stalled
   or absent simulator never sends;
-- every parameter is either applied live when set or refused with a reason (`declare`:
-  read-only unless the node applies it; `Parameters` checks and applies the live ones);
+- every parameter is declared from a schema class (`declare_schema`: `tsr_sim.schema`),
+  and is either applied live when set or refused with a reason (read-only unless the node
+  applies it; `Parameters` checks and applies the live ones);
 - health goes out on /diagnostics about once a second (`Health`).
 """
 
-import difflib
+import dataclasses
 import os
 import signal
 import sys
@@ -28,8 +29,10 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from tsr_sim.node_parameters import ProcessSettings, ScaleSettings
 from tsr_sim.parameter_file import params_file_problem
-from tsr_sim.units import DEFAULT_MASS, PAPER_ORBIT_RATE, PAPER_TETHER_LENGTH, Scale
+from tsr_sim.schema import AT_START, did_you_mean
+from tsr_sim.units import Scale
 
 #: State and command: reliable, so lockstep never loses a step; shallow, so no backlog builds.
 LOOP_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
@@ -66,20 +69,53 @@ def steady_timer(node, period, callback):
     return node.create_timer(period, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
-def declare(node, name, default, description, low=None, high=None, step=None, read_only=True):
-    """Declare a parameter with a descriptor (and a range for numbers); return its value.
-    Read-only unless the node applies a new value when it is set (`Parameters`): setting a
-    read-only parameter on a running node is refused with rcl's 'read-only' reason, not
-    accepted and ignored."""
-    descriptor = ParameterDescriptor(description=description, read_only=read_only)
-    if low is not None:
-        if isinstance(default, int) and not isinstance(default, bool):
-            descriptor.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
-                                                     step=int(step or 1))]
+#: The largest bounds a parameter descriptor holds: a side a schema leaves open gets these.
+INTEGER_BOUND = 2 ** 62
+FLOAT_BOUND = sys.float_info.max
+
+
+def parameter_descriptor(meta, default, read_only):
+    """The descriptor of a schema field (`tsr_sim.schema.setting`): its description, its
+    choices, read-only or not, and for a number (`default` decides: an int or a float) its
+    range, a side left open filled with the largest bound a descriptor holds."""
+    descriptor = ParameterDescriptor(description=meta['description'], read_only=read_only)
+    if meta.get('choices'):
+        descriptor.additional_constraints = f"one of {', '.join(map(str, meta['choices']))}"
+    low, high = meta.get('low'), meta.get('high')
+    number = isinstance(default, (int, float)) and not isinstance(default, bool)
+    if number and (low is not None or high is not None):
+        if isinstance(default, int):
+            descriptor.integer_range = [IntegerRange(
+                from_value=-INTEGER_BOUND if low is None else int(low),
+                to_value=INTEGER_BOUND if high is None else int(high), step=1)]
         else:
             descriptor.floating_point_range = [FloatingPointRange(
-                from_value=float(low), to_value=float(high), step=float(step or 0.0))]
-    return node.declare_parameter(name, default, descriptor).value
+                from_value=-FLOAT_BOUND if low is None else float(low),
+                to_value=FLOAT_BOUND if high is None else float(high), step=0.0)]
+    return descriptor
+
+
+def declare_schema(node, schema, section='', applied=None, defaults=None):
+    """Declare every field of a schema class (`tsr_sim.schema`) as a parameter of `node`,
+    named `<section>.<field>` (or `<field>`), with its description and, for a number, its range
+    (`parameter_descriptor`). Read-only where the node applies it at start only: setting it on
+    a running node is then refused with rcl's 'read-only' reason, not accepted and ignored.
+    `applied` (AT_START, AT_CONFIGURE, LIVE) overrides the fields' own. `defaults`: {field: a
+    default the node computes (a field declared with None), or a function of the values
+    declared before it}. Returns {field: value}, a sequence as a tuple."""
+    values = {}
+    for field in dataclasses.fields(schema):
+        default = (defaults or {}).get(field.name, field.default)
+        if callable(default):
+            default = default(values)
+        if isinstance(default, tuple):
+            default = list(default)       # a ROS array
+        read_only = (applied or field.metadata.get('applied', AT_START)) == AT_START
+        name = f'{section}.{field.name}' if section else field.name
+        value = node.declare_parameter(
+            name, default, parameter_descriptor(field.metadata, default, read_only)).value
+        values[field.name] = tuple(value) if isinstance(value, list) else value
+    return values
 
 
 def given_parameter_names(node):
@@ -95,21 +131,16 @@ def warn_near_misses(node):
     (the controller refuses a misspelt law setting)."""
     declared = [name for name in node.list_parameters([], 0).names if '.' not in name]
     for name in sorted(given_parameter_names(node) - set(declared)):
-        close = '.' not in name and difflib.get_close_matches(name, declared, n=1, cutoff=0.8)
-        if close:
+        hint = '.' not in name and did_you_mean(name, declared, cutoff=0.8)
+        if hint:
             node.get_logger().warning(f"parameter '{name}' is not one of this node's and was "
-                                      f"ignored (did you mean '{close[0]}'?)")
+                                      f'ignored{hint}')
 
 
-def declare_scale(node, read_only=True):
-    """Declare orbit_rate, tether_length and mass (every node converting units needs them)."""
-    return Scale(
-        orbit_rate=declare(node, 'orbit_rate', PAPER_ORBIT_RATE, 'Omega [rad/s]', 1e-9, 1.0,
-                           read_only=read_only),
-        tether_length=declare(node, 'tether_length', PAPER_TETHER_LENGTH,
-                              'full tether length L [m]', 1e-3, 1e9, read_only=read_only),
-        mass=declare(node, 'mass', DEFAULT_MASS, 'robot mass m [kg]', 1e-6, 1e9,
-                     read_only=read_only))
+def declare_scale(node, applied=None):
+    """Declare orbit_rate, tether_length and mass (`ScaleSettings`: every node converting
+    units needs them); return the Scale."""
+    return Scale(**declare_schema(node, ScaleSettings, applied=applied))
 
 
 class Parameters:
@@ -254,17 +285,9 @@ def print_usage(node_class, doc):
           'description, range and whether it is read-only; docs/nodes.md has the tables.')
 
 
-#: Math threads a node uses unless its `threads` parameter says otherwise: one, so that a node
-#: started by hand on a small machine runs as fast as under a launcher that sets
-#: OMP_NUM_THREADS=1 (several BLAS threads per process stall one another on two cores).
-DEFAULT_THREADS = 1
-
-
-def pin_threads(node):
-    """Declare `threads` and limit the process's BLAS / OpenMP thread pools to it (0: leave
-    them as the environment sets them)."""
-    threads = declare(node, 'threads', DEFAULT_THREADS, 'math (BLAS / OpenMP) threads of this '
-                      'process (0: as the environment sets them)', 0, 1024)
+def pin_threads(node, threads):
+    """Limit the process's BLAS / OpenMP thread pools to `threads` (its `threads` parameter;
+    0: leave them as the environment sets them)."""
     if threads:
         from threadpoolctl import threadpool_limits
         node.thread_limits = threadpool_limits(limits=threads)
@@ -278,14 +301,11 @@ def pin_threads(node):
 LOOP_PRIORITY = 50
 
 
-def raise_priority(node, default):
-    """Declare `thread_priority` and put the node's executor thread under SCHED_FIFO at it (0:
-    normal scheduling; the DDS threads stay at normal priority: all threads at FIFO measured
-    no better). Where the system refuses (no CAP_SYS_NICE, no rtprio limit) the node runs on at
-    normal priority with a warning, as ros2_control_node does."""
-    priority = declare(node, 'thread_priority', default, 'real-time (SCHED_FIFO) priority of '
-                       "the node's executor thread, 1-99 (0: normal scheduling); needs "
-                       'CAP_SYS_NICE or an rtprio limit, else a warning', 0, 99)
+def raise_priority(node, priority):
+    """Put the node's executor thread under SCHED_FIFO at `priority` (its `thread_priority`
+    parameter; 0: normal scheduling; the DDS threads stay at normal priority: all threads at
+    FIFO measured no better). Where the system refuses (no CAP_SYS_NICE, no rtprio limit) the
+    node runs on at normal priority with a warning, as ros2_control_node does."""
     if priority:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
@@ -308,8 +328,8 @@ def run_node(make_node, on_exit=None, args=None, drain=None, start=None, priorit
     Then `on_exit(node)` and clean-up; exit code 0. A node whose `done` attribute a callback
     sets ends the run the same way (an exception out of a callback would be logged as fatal).
     A parameter given but not declared that is close to a declared one is a warning
-    (`warn_near_misses`). Every node gets a `threads` parameter (`pin_threads`) and a
-    `thread_priority` parameter, default `priority` (`raise_priority`). A bad
+    (`warn_near_misses`). Every node gets the parameters of `ProcessSettings`: `threads`
+    (`pin_threads`) and `thread_priority`, default `priority` (`raise_priority`). A bad
     parameter (out of range, wrong type, invalid value) or model while constructing, or a
     --params-file that cannot be read
     (`parameter_file.params_file_problem`, checked before rcl would log its own [ERROR] line),
@@ -343,9 +363,16 @@ def run_node(make_node, on_exit=None, args=None, drain=None, start=None, priorit
         print(f'cannot start: {err}', file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return 2
+    try:
+        process = declare_schema(node, ProcessSettings, defaults={'thread_priority': priority})
+    except ParameterException as err:
+        print(f'cannot start: {err}', file=sys.stderr, flush=True)
+        node.destroy_node()
+        rclpy.try_shutdown()
+        return 2
     warn_near_misses(node)
-    pin_threads(node)
-    raise_priority(node, priority)
+    pin_threads(node, process['threads'])
+    raise_priority(node, process['thread_priority'])
     executor = EventsExecutor()
     executor.add_node(node)
     error = start(node) if start is not None else None

@@ -27,8 +27,10 @@ and while it waits, so nodes on sim time start too. Its own timers run on the st
 it runs with `use_sim_time` true or false. A state that leaves the model's domain or tumbles
 (|theta| > `max_swing`) halts the run (status HALTED_OUT_OF_DOMAIN, an ERROR on /diagnostics);
 `tsr/reset` starts a new run from step 0, with the next run number (TsrState.run,
-SimStatus.run). Parameters that shape the plant or the run are
-read-only on a running node; the scheduling ones are applied when set (`LIVE`).
+SimStatus.run). Its parameters are declared from schema classes (`plant.PlantSettings`,
+`node_parameters.SimulatorNodeSettings`, the units' `ScaleSettings`): those that shape the
+plant or the run are read-only on a running node; the scheduling ones are applied when set
+(`LIVE`).
 
 All maths and command checks are in tsr_sim.plant (ROS-free); this file converts and schedules.
 """
@@ -46,18 +48,19 @@ from tsr_msgs.msg import RunInfo, SimStatus, TensionCommand, TsrState
 from tsr_msgs.srv import ResetSim
 
 from tsr_sim import dynamics
-from tsr_sim.plant import (config_from_parameters, Plant, PLANT_PARAMETERS, Rejection,
-                           SIMULATOR_PARAMETERS, Status)
-from tsr_sim.ros_io import (COMMAND_QOS, declare, declare_scale, Health, LATCHED_QOS,
-                            LOOP_PRIORITY, LOOP_PUBLISHER_QOS, MatchedReaders, MatchedWriters,
-                            Parameters, run_node, steady_timer)
+from tsr_sim.node_parameters import SimulatorNodeSettings
+from tsr_sim.plant import config_from_parameters, Plant, PlantSettings, Rejection, Status
+from tsr_sim.ros_io import (COMMAND_QOS, declare_schema, declare_scale, Health,
+                            LATCHED_QOS, LOOP_PRIORITY, LOOP_PUBLISHER_QOS, MatchedReaders,
+                            MatchedWriters, Parameters, run_node, steady_timer)
+from tsr_sim.schema import LIVE as APPLIED_LIVE, names_applied
 from tsr_sim.wire import (CLOCK_TOPIC, NO_STEP, RESET_SERVICE, RUN_INFO_TOPIC, run_info_msg,
                           scale_dict, SIM_STATUS_TOPIC, STATE_TOPIC, state_to_msg,
                           TENSION_TOPIC)
 
-#: Parameters applied when set on a running simulator; the others are read-only there.
-LIVE = ('rate_hz', 'command_timeout', 'safe_tension', 'republish_period', 'progress_every',
-        'wait_for_subscribers', 'exit_on_finish', 'max_steps')
+#: Parameters applied when set on a running simulator (their schemas say so); the others are
+#: read-only there.
+LIVE = names_applied(APPLIED_LIVE, PlantSettings, SimulatorNodeSettings)
 #: Republish periods without the first command of a run before the lockstep simulator warns:
 #: a controller's first solve or a late discovery takes a moment, which is no reason to warn.
 IDLE_WARNING_PERIODS = 10
@@ -75,25 +78,25 @@ class SimNode(Node):
 
     def __init__(self):
         super().__init__(self.NODE_NAME)
-        self.mode = self._declare('mode')
-        if self.mode not in ('lockstep', 'timed'):
-            raise ValueError(f"parameter mode must be 'lockstep' or 'timed', got {self.mode!r}")
-        self.plant_name = self._declare('plant')
-        self.plant = Plant(self._plant_config())
+        scale = declare_scale(self)
+        plant_values = declare_schema(self, PlantSettings)
+        own = declare_schema(self, SimulatorNodeSettings, defaults={
+            'max_tension': scale.u_to_tension(dynamics.TENSION_LIMIT),
+            'safe_tension': scale.u_to_tension(dynamics.EQUILIBRIUM_TENSION)})
+        SimulatorNodeSettings(**own)        # the choices (mode, clock_start): one line
+        self.mode, self.plant_name = own['mode'], own['plant']
+        self.plant = Plant(config_from_parameters(
+            {**plant_values, 'max_tension': own['max_tension']}, scale))
         self.scale = self.plant.config.scale
-        self.frame_id = self._declare('frame_id')
-        self.command_timeout = self._declare('command_timeout')
-        self.safe_tension = self._declare(
-            'safe_tension', self.scale.u_to_tension(dynamics.EQUILIBRIUM_TENSION))
-        self.republish_period = self._declare('republish_period')
-        self.progress_every = self._declare('progress_every')
-        self.wait_for_subscribers = self._declare('wait_for_subscribers')
-        self.exit_on_finish = self._declare('exit_on_finish')
-        self.rate_hz = self._declare('rate_hz')
-        self.clock_start = self._declare('clock_start')
-        if self.clock_start not in ('command', 'matched', 'now'):
-            raise ValueError("parameter clock_start must be 'command', 'matched' or 'now', got "
-                             f'{self.clock_start!r}')
+        self.frame_id = own['frame_id']
+        self.command_timeout = own['command_timeout']
+        self.safe_tension = own['safe_tension']
+        self.republish_period = own['republish_period']
+        self.progress_every = own['progress_every']
+        self.wait_for_subscribers = own['wait_for_subscribers']
+        self.exit_on_finish = own['exit_on_finish']
+        self.rate_hz = own['rate_hz']
+        self.clock_start = own['clock_start']
         self.holding = False        # the reel hold is engaged (timed)
         self.done = False   # run_node stops spinning once set
         self.last_accepted = None   # (step, tension) of the last command accepted in lockstep
@@ -149,22 +152,6 @@ class SimNode(Node):
         self.publish_clock()
         self.publish_state()
         self.publish_status()
-
-    def _plant_config(self):
-        """Declare the plant's parameters (`plant.PLANT_PARAMETERS`, the one declaration)."""
-        scale = declare_scale(self)
-        values = {name: declare(self, name, default, description, low, high,
-                                read_only=name not in LIVE)
-                  for name, (default, description, low, high) in PLANT_PARAMETERS.items()}
-        values['max_tension'] = self._declare(
-            'max_tension', scale.u_to_tension(dynamics.TENSION_LIMIT))
-        return config_from_parameters(values, scale)
-
-    def _declare(self, name, computed_default=None):
-        """Declare one of `plant.SIMULATOR_PARAMETERS` (a None default is `computed_default`)."""
-        default, description, low, high = SIMULATOR_PARAMETERS[name]
-        return declare(self, name, computed_default if default is None else default,
-                       description, low, high, read_only=name not in LIVE)
 
     # Live parameters ----------------------------------------------------------------------
 

@@ -22,8 +22,7 @@ from tsr_sim import dynamics
 from tsr_koopman_ctrl.bag.checks import FAILED_MARK, is_failed
 from tsr_koopman_ctrl.commands import cli
 from tsr_koopman_ctrl.control import CONTROLLERS
-from tsr_koopman_ctrl.control.registry import DEFAULT_LAW
-from tsr_koopman_ctrl.control.settings import parse_assignments
+from tsr_koopman_ctrl.control.registry import DEFAULT_LAW, parse_assignments
 from tsr_koopman_ctrl.deployment import (Deployment, DeploymentError, Interrupted,
                                          summary_table)
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments

@@ -11,6 +11,7 @@ from tsr_koopman_ctrl.control.linear_lqr import LinearisedLqr
 from tsr_koopman_ctrl.control.offset_free import ObserverSettings, OffsetFree
 from tsr_koopman_ctrl.control.safety_filter import SafetyFilter, SafetyFilterSettings
 from tsr_koopman_ctrl.control.settings import build, LawSettings
+from tsr_koopman_ctrl.control.settings import parse_assignments as parse_section_assignments
 from tsr_koopman_ctrl.control.supervisor import Supervisor, SupervisorSettings
 
 #: The law the controller node, deploy and the main job run unless told otherwise.
@@ -39,6 +40,14 @@ def settings_class(section):
                          f"({', '.join(sorted(CONTROLLERS))}) or one of "
                          f"{', '.join(sorted(NODE_SECTIONS))}")
     return CONTROLLERS[section].Settings
+
+
+def parse_assignments(assignments, section_class=settings_class):
+    """{section: {setting: value}} from 'SECTION.SETTING=VALUE' strings (deploy's --set, the
+    lab's, a campaign's), each value read as its setting's type and checked
+    (`settings.parse_assignments`); a section is a law's or one of NODE_SECTIONS unless
+    `section_class(section)` says otherwise."""
+    return parse_section_assignments(assignments, section_class)
 
 
 def law_class(name):

@@ -50,8 +50,10 @@ Commands and statuses carry the stamp of the state they answer, so a bag has one
 Each state's outcome, which law flew it and why the supervisor distrusts the learned law, and
 the law's compute time go out on `tsr/controller_status`; health on /diagnostics.
 
-Parameters: `law` picks the law; every law's settings are declared as `<law>.<setting>` from its
-Settings class (the one declaration), with `observer.*`, `supervisor.*` and `excitation.*`.
+Parameters, each declared from a schema class (`tsr_sim.schema`; the node's own:
+`controller_parameters.ControllerNodeSettings`): `law` picks the law; every law's settings are
+declared as `<law>.<setting>` from its Settings class (the one declaration), with `observer.*`,
+`supervisor.*`, `safety_filter.*` and `excitation.*`.
 Those and the units scale are read at configure: set them on an unconfigured node (refused
 otherwise, with the reason). `max_tension`, `safe_tension`, `state_timeout` and
 `wait_for_subscribers` are applied live. A parameter under a law's, `observer.`, `supervisor.`
@@ -71,21 +73,23 @@ from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from tsr_msgs.msg import ControllerStatus, Excitation, RunInfo, TensionCommand, TsrState
 from tsr_sim import dynamics
 from tsr_msgs.msg import SimStatus
-from tsr_sim.ros_io import (declare, declare_scale, given_parameter_names, Health, LATCHED_QOS,
-                            LOOP_PRIORITY, LOOP_PUBLISHER_QOS, MatchedReaders, Parameters,
-                            run_node, STATE_QOS, STATE_QUEUE_DEPTH, steady_timer)
+from tsr_sim.ros_io import (declare_schema, declare_scale, given_parameter_names, Health,
+                            LATCHED_QOS, LOOP_PRIORITY, LOOP_PUBLISHER_QOS, MatchedReaders,
+                            Parameters, run_node, STATE_QOS, STATE_QUEUE_DEPTH, steady_timer)
 from tsr_sim.plant import SCALE_PARAMETERS
+from tsr_sim.schema import AT_CONFIGURE, LIVE as APPLIED_LIVE, names_applied
 from tsr_sim.units import Scale
 from tsr_sim.wire import (CONTROLLER_STATUS_TOPIC, EXCITATION_TOPIC, NO_STEP, RUN_INFO_TOPIC,
                           run_info_msg, scale_dict, SIM_STATUS_TOPIC, STATE_TOPIC, state_from_msg,
                           TENSION_TOPIC, tension_msg)
 
-from tsr_koopman_ctrl.control import CONTROLLERS, make_controller, TensionLimiter
+from tsr_koopman_ctrl.control import make_controller, TensionLimiter
 from tsr_koopman_ctrl.control.excitation import Excitation as ExcitationSource
-from tsr_koopman_ctrl.control.registry import DEFAULT_LAW, law_class, settings_sections
+from tsr_koopman_ctrl.control.registry import law_class, settings_sections
 from tsr_koopman_ctrl.control.settings import fields, unknown_setting_names
 from tsr_koopman_ctrl.control.step import ControlStep, Outcome
 from tsr_koopman_ctrl.model.model_file import weights_sha256
+from tsr_koopman_ctrl.nodes.controller_parameters import ControllerNodeSettings
 
 #: Compute times kept for the median and p99 on /diagnostics.
 COMPUTE_WINDOW = 1000
@@ -93,27 +97,13 @@ COMPUTE_WINDOW = 1000
 PERIOD_WINDOW = 50
 #: Seconds a leaving node waits for its readers to acknowledge the stop (a bounded exit).
 STOP_ACK_TIMEOUT = 2.0
-#: Parameters applied when set; the others (law, settings, scale) are read at configure.
-LIVE = ('max_tension', 'safe_tension', 'state_timeout', 'wait_for_subscribers',
-        'wait_for_status_subscribers')
+#: Parameters applied when set (their schema says so); the others are read at configure (law,
+#: settings, units) or at start (autostart).
+LIVE = names_applied(APPLIED_LIVE, ControllerNodeSettings)
 #: Lifecycle state ids (lifecycle_msgs/State) and their labels.
 UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED = 1, 2, 3, 4
 STATE_LABELS = {UNCONFIGURED: 'unconfigured', INACTIVE: 'inactive', ACTIVE: 'active',
                 FINALIZED: 'finalized'}
-
-
-def declare_settings(node, section, settings_class):
-    """Declare `<section>.<setting>` for every setting of a settings class, read at configure.
-    A number with only a lower bound gets the largest upper bound a descriptor can hold, so
-    every number has its range."""
-    for name, default, meta in fields(settings_class):
-        scalar = not isinstance(default, tuple)
-        low, high = meta['low'], meta['high']
-        if scalar and low is not None and high is None and not isinstance(default, bool):
-            high = 2 ** 62 if isinstance(default, int) else sys.float_info.max
-        bounds = (low, high) if scalar and low is not None and high is not None else ()
-        declare(node, f'{section}.{name}', default if scalar else list(default),
-                meta['description'], *bounds, read_only=False)
 
 
 def settings_values(node, section, settings_class):
@@ -135,33 +125,15 @@ class ControllerNode(LifecycleNode):
         problems = unknown_setting_names(given_parameter_names(self), settings_sections())
         if problems:
             raise ValueError('; '.join(problems))
-        self.autostart = declare(self, 'autostart', True, 'configure and activate at start '
-                                 '(false: wait for a lifecycle manager)')
-        declare(self, 'law', DEFAULT_LAW, f'control law: one of {sorted(CONTROLLERS)} (read at '
-                'configure)', read_only=False)
+        own = declare_schema(self, ControllerNodeSettings)
         for section, settings_class in settings_sections().items():
-            declare_settings(self, section, settings_class)
-        declare_scale(self, read_only=False)
-        self.max_tension = declare(
-            self, 'max_tension', Scale().u_to_tension(dynamics.TENSION_LIMIT),
-            f'output clamp [N] (default: u = {dynamics.TENSION_LIMIT:g} at the default units)',
-            1e-9, 1e9, read_only=False)
-        self.safe_tension = declare(
-            self, 'safe_tension', Scale().u_to_tension(dynamics.EQUILIBRIUM_TENSION),
-            'the tension of the stop command (sent on deactivate, shutdown and when no state '
-            'arrives for state_timeout) for a plant without a hold of its own [N] (default: '
-            'u = 3 at the default units, which holds the deployed equilibrium)', 0.0, 1e9,
-            read_only=False)
-        self.state_timeout = declare(self, 'state_timeout', 5.0, 'wall seconds without a state '
-                                     'before the stop command is sent', 0.01, 3600.0,
-                                     read_only=False)
-        self.wait_for_subscribers = declare(
-            self, 'wait_for_subscribers', 0, 'answer no state until this many readers of the '
-            'tension commands have matched (simulator, recorder)', 0, 1000, read_only=False)
-        self.wait_for_status_subscribers = declare(
-            self, 'wait_for_status_subscribers', 0, 'answer no state until this many readers of '
-            'the controller status (and excitation) have matched (a recorder)', 0, 1000,
-            read_only=False)
+            declare_schema(self, settings_class, section, applied=AT_CONFIGURE)
+        declare_scale(self, applied=AT_CONFIGURE)
+        self.autostart = own['autostart']
+        self.max_tension, self.safe_tension = own['max_tension'], own['safe_tension']
+        self.state_timeout = own['state_timeout']
+        self.wait_for_subscribers = own['wait_for_subscribers']
+        self.wait_for_status_subscribers = own['wait_for_status_subscribers']
         self.counts = {'commands': 0, 'non_finite_states': 0, 'refused_states': 0,
                        'foreign_states': 0, 'dropped_states': 0, 'overruns': 0,
                        'state_timeouts': 0, 'resent': 0, 'runs': 0}

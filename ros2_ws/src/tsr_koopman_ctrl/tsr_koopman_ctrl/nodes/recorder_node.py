@@ -6,7 +6,8 @@ burst), transient local where every publisher is. A topic subscribed at start ge
 publishers' offered QoS in the bag (as `ros2 bag record` writes it) when they are first seen:
 by the discovery timer, or at its first message, which is written at once either way. Relative
 topic names resolve in the node's namespace, as the loop's publishers' do. SIGINT and SIGTERM
-close the bag cleanly; the bag format itself is in `tsr_koopman_ctrl.bag`.
+close the bag cleanly; the bag format itself is in `tsr_koopman_ctrl.bag`. Its parameters are
+declared from one schema class (`recorder_parameters.RecorderNodeSettings`).
 """
 
 import importlib
@@ -16,16 +17,15 @@ import time
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from tsr_sim.ros_io import (declare, Health, Parameters, run_node, spin_until_quiet,
-                            steady_timer)
+from tsr_sim.ros_io import (declare_schema, Health, Parameters, run_node,
+                            spin_until_quiet, steady_timer)
 from rosgraph_msgs.msg import Clock
-from tsr_sim.wire import CLOCK_TOPIC, LATCHED_TOPICS, LOOP_TOPIC_TYPES
+from tsr_sim.wire import CLOCK_TOPIC, LATCHED_TOPICS
 
 from tsr_koopman_ctrl.bag import definitions
 from tsr_koopman_ctrl.bag.writer import BagWriter, new_bag_name, ReceivedCallback
-
-DEFAULT_TOPICS = list(LOOP_TOPIC_TYPES)
-DEFAULT_TYPES = list(LOOP_TOPIC_TYPES.values())
+from tsr_koopman_ctrl.nodes.recorder_parameters import (DEFAULT_TOPICS, DEFAULT_TYPES,
+                                                        RecorderNodeSettings)
 
 
 def message_class(type_name):
@@ -55,47 +55,29 @@ class RecorderNode(Node):
 
     def __init__(self):
         super().__init__(self.NODE_NAME)
-        self.wanted = [self.resolve_topic_name(t) for t in declare(
-            self, 'topics', DEFAULT_TOPICS, 'topics to record (relative names resolve in the '
-            "node's namespace)")]
-        defaults = self.wanted == [self.resolve_topic_name(t) for t in DEFAULT_TOPICS]
-        types = declare(self, 'types', DEFAULT_TYPES if defaults else [''],
-                        'message type of each topic (pkg/msg/Type), subscribed at start so '
-                        "nothing is missed; '' or a shorter list: discovered from publishers")
+        loop = self.resolved(DEFAULT_TOPICS)
+        # The loop's types for the loop's topics; other topics' are discovered by default.
+        params = declare_schema(self, RecorderNodeSettings, defaults={'types': (
+            lambda declared: DEFAULT_TYPES if self.resolved(declared['topics']) == loop
+            else [''])})
+        self.wanted = self.resolved(params['topics'])
+        types = list(params['types'])
         for type_name in filter(None, types):
             message_class(type_name)      # a bad type stops the node before any bag exists
-        directory = declare(self, 'output_dir', 'bags', 'directory the bag is created in')
-        name = declare(self, 'bag_name', '', 'bag directory name (empty: tsr_<UTC time to the '
-                       'microsecond>_<random hex>, a directory not there yet)')
-        name = name or new_bag_name(directory, 'tsr')
+        directory = params['output_dir']
+        name = params['bag_name'] or new_bag_name(directory, 'tsr')
         self.writer = BagWriter(
-            os.path.join(directory, name),
-            max_file_bytes=declare(self, 'max_file_size', 0,
-                                   'split after this many bytes (0: never)', 0, 2 ** 62,
-                                   read_only=False),
-            max_file_seconds=declare(self, 'max_file_duration', 0.0,
-                                     'split after this many seconds (0: never)', 0.0, 1e9,
-                                     read_only=False),
-            chunk_size=declare(self, 'chunk_size', 1 << 20,
-                               'MCAP chunk size in bytes (a chunk is also closed every '
-                               'flush_period)', 256, 1 << 30),
-            flush_period=declare(self, 'flush_period', 1.0,
-                                 'seconds: a chunk in progress is written out at least this '
-                                 'often, so a kill -9 loses at most about this much (0: only '
-                                 'by chunk size)', 0.0, 3600.0, read_only=False))
+            os.path.join(directory, name), max_file_bytes=params['max_file_size'],
+            max_file_seconds=params['max_file_duration'], chunk_size=params['chunk_size'],
+            flush_period=params['flush_period'])
         # Checked often and cheaply: a chunk is written once its oldest message is due.
         steady_timer(self, 0.1, self.writer.flush_if_due)
         self.subscribed = {}
         self.matched_since = {}        # topic -> monotonic time its publishers were first seen
         self.silence_warned = set()
-        self.silence_warning = declare(
-            self, 'silence_warning', 5.0, 'seconds: warn once per topic when publishers are '
-            'matched but no message has arrived for this long (0: never)', 0.0, 3600.0,
-            read_only=False)
+        self.silence_warning = params['silence_warning']
         steady_timer(self, 0.5, self.check_silence)
-        self.discovery_timer = steady_timer(self, declare(
-            self, 'discovery_period', 0.2, 'seconds between looks for new topics', 0.01, 60.0,
-            read_only=False), self.discover)
+        self.discovery_timer = steady_timer(self, params['discovery_period'], self.discover)
         self.types = types
         self.recording = False
         self.parameters = Parameters(self)
@@ -113,6 +95,9 @@ class RecorderNode(Node):
             self.get_logger().info('use_sim_time: waiting for /clock before recording')
             self.clock_watch = self.create_subscription(Clock, CLOCK_TOPIC, self.on_clock, 1)
         self.start_recording()
+
+    def resolved(self, topics):
+        return [self.resolve_topic_name(t) for t in topics]
 
     def on_clock(self, msg):
         if not self.clock_seen:
