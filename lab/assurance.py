@@ -1,70 +1,76 @@
-"""Runtime assurance measured: the supervised learned NMPC (`make_controller('koopman_nmpc',
-safety='none')`, the default without its safety filter) against the bare one
-(`supervisor='none'`) and its fallback flown alone
-(`physics_nmpc`), ROS-free from the nine comparison starts.
+"""Runtime assurance measured: the supervised learned NMPC (`koopman_nmpc` without its safety
+filter) against the bare one (no supervisor) and its fallback flown alone (`physics_nmpc`),
+ROS-free from the nine comparison starts.
 
     python -m lab.assurance [--parts nominal swing robust] [--out lab/results/assurance]
     python -m lab.assurance --parts monitor \
         --out lab/results/assurance_monitor
 
-Parts: `nominal`, the shipped settings on the nominal plant (the supervisor should change
-nothing); `swing`, `theta_max 0.4` (the bare learned NMPC tumbles from three starts); `robust`,
-actuator gain 0.8 and 1.2 with an unmodelled 0.05-tau lag and sensor noise 1e-3 (is a start
-slower supervised?); `monitor`, the robust part's runs under other monitor settings
-(`MONITOR_VARIANTS`, in --workers processes): does one leave no start slower than bare? Per
-run: settle tau, swing, the frontier ratio at the run's swing, the supervisor's switches and
-the steps its fallback flew. Writes assurance.md and assurance.json into --out and the tables
-into docs/supervisor.md between the markers named after --out.
+Each part is a campaign spec under lab/campaigns/assurance/, flown through the product's
+campaign API (`tsr_koopman_ctrl.campaign`) into <out>/<part> (resumed where rows exist):
+`nominal`, the shipped settings on the nominal plant (the supervisor should change nothing);
+`swing`, `theta_max 0.4` (the bare learned NMPC tumbles from three starts); `robust`, actuator
+gain 0.8 and 1.2 with an unmodelled 0.05-tau lag and sensor noise 1e-3 (is a start slower
+supervised?); `monitor`, the robust part's runs under other monitor settings, beside the bare
+law from starts moved by a nudge far below any sensor's resolution (`monitor_nudged`): does
+one leave no start slower than bare? Per run: settle tau, swing, the frontier ratio at the
+run's swing, the supervisor's switches. Writes assurance.md and assurance.json into --out and
+the tables into docs/supervisor.md between the markers named after --out.
 """
 
 import argparse
-import concurrent.futures
+import math
 import os
 import sys
 
 import numpy as np
 from tsr_sim import dynamics
 
+from lab import campaigns
 from lab.report import check_page, marker_name, publish
-from tsr_koopman_ctrl.control import closed_loop, make_controller
-from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
 
-STARTS = COMPARISON_STARTS + HELD_OUT_STARTS
-#: The variants of the `robust` part (the robustness grid's actuator cases, docs/robustness.md).
-ROBUST_PLANTS = {f'gain {gain}, lag 0.05, noise 1e-3': {
-    'actuator_gain': gain, 'actuator_lag': 0.05, 'sensor_noise_std': [1e-3] * 4}
-    for gain in (0.8, 1.2)}
-#: The laws each part flies: (label, law, make_controller options).
-LAWS = {'bare': ('koopman_nmpc', {'supervisor': 'none', 'safety': 'none'}),
-        'supervised': ('koopman_nmpc', {'safety': 'none'}),
-        'fallback alone': ('physics_nmpc', {})}
-#: The monitor settings the `monitor` part flies beside the shipped ones (label: supervisor
-#: settings): a quicker or slower hand-back, a fault rule that needs three faults.
-MONITOR_VARIANTS = {'shipped': {}, 'takeback_steps 5': {'takeback_steps': 5},
-                    'takeback_steps 10': {'takeback_steps': 10},
-                    'takeback_steps 40': {'takeback_steps': 40},
-                    'fault_count 3, fault_window 3': {'fault_count': 3, 'fault_window': 3}}
-#: The `monitor` part's yardstick: the bare law from each start moved by this much in theta
-#: [rad], far below any sensor's resolution. How far its settle times move is how far a run
-#: moves for no reason a monitor could see.
-NUDGE = 1e-9
-NUDGED = f'bare, theta0 + {NUDGE:g} rad'
+SPECS = {part: campaigns.spec_path(os.path.join('assurance', f'{part}.yaml'))
+         for part in ('nominal', 'swing', 'robust', 'monitor', 'monitor_nudged')}
+PARTS = ('nominal', 'swing', 'robust', 'monitor')
 PAGE = os.path.join('docs', 'supervisor.md')
 #: Settle times closer than half a step are the same.
 TIE = 0.5 * dynamics.PAPER_STEP
+CELLS = 'each cell: settle tau (swing [rad], ratio to the minimum time at that swing)'
 
 
-def fly(label, start, settings, plant=None, steps=2000):
-    law_name, options = LAWS.get(label) or ('koopman_nmpc',
-                                            {'supervisor': MONITOR_VARIANTS[label],
-                                             'safety': 'none'})
-    law = make_controller(law_name, **options, **settings)
-    states, tensions = closed_loop(law, start, steps, plant=plant)
-    figures = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions,
-                          start=start, halted=len(states) <= steps)
-    return {'law': label, 'start': list(start), 'settle_tau': figures['settle_tau'],
-            'swing': figures['swing'], 'ratio': figures['frontier_ratio'],
-            'halted': figures['halted'], 'switches': law.switches}
+def fly(part, out, steps=None, runs=None, workers=None, address=None):
+    """(campaign, rows) of one part's spec, flown into <out>/<part> (resumed if begun)."""
+    from tsr_koopman_ctrl.campaign import load_spec
+    campaign = load_spec(SPECS[part], steps=steps, runs=runs)
+    return campaign, campaigns.fly(campaign, os.path.join(out, part), workers, address)
+
+
+def heading(entry):
+    """A law's name on the page: its supervisor settings where it sets some, else its label
+    (underscores as spaces)."""
+    settings = {k: v for k, v in entry.settings.get('supervisor', {}).items() if k != 'fallback'}
+    return ', '.join(f'{k} {v}' for k, v in settings.items()) or entry.label.replace('_', ' ')
+
+
+def results(campaign, rows, part, starts=None):
+    """The rows as the page reads them, in the spec's order (case, start, law): law (its
+    heading), start (of `starts` if given, else the spec's, by the run's start index),
+    settle_tau (None: not settled), swing, ratio, halted, switches, part, plant (its case)."""
+    starts = starts or campaign.start_list
+    headings = {entry.label: heading(entry) for entry in campaign.laws}
+    order = [entry.label for entry in campaign.laws]
+
+    def value(number):
+        return None if math.isnan(number) else float(number)
+    flown = []
+    for row in rows.to_dict('records'):
+        start, case = campaign.position(int(row['run']))
+        flown.append(((case, start, order.index(row['law'])), {
+            'law': headings[row['law']], 'start': list(starts[start]),
+            'settle_tau': value(row['settle_tau']), 'swing': value(row['swing']),
+            'ratio': value(row['frontier_ratio']), 'halted': bool(row['halted']),
+            'switches': int(row['switches']), 'part': part, 'plant': row.get('case')}))
+    return [result for _, result in sorted(flown, key=lambda pair: pair[0])]
 
 
 def cell(row):
@@ -74,37 +80,39 @@ def cell(row):
     return f"{row['settle_tau']:.2f} ({row['swing']:.3f}{ratio})"
 
 
-def part(name, settings, plant, labels, rows):
-    """Fly `labels` from every start; one markdown table."""
+def part_table(campaign, rows):
+    """One markdown table of a part's `rows` (`results`): a line per start, a column per law,
+    then the supervised law's switches."""
+    labels = [heading(entry) for entry in campaign.laws]
     lines = ['| start | ' + ' | '.join(labels) + ' | switches |',
              '|---' * (len(labels) + 2) + '|']
-    for start in STARTS:
-        mine = {label: fly(label, start, settings, plant) for label in labels}
-        for label, row in mine.items():
-            rows.append({**row, 'part': name})
-        lines.append(f'| {list(start)} | ' + ' | '.join(cell(mine[label]) for label in labels)
+    for start in dict.fromkeys(tuple(row['start']) for row in rows):
+        mine = {row['law']: row for row in rows if tuple(row['start']) == start}
+        lines.append(f'| {list(start)} | '
+                     + ' | '.join(cell(mine[label]) if label in mine else '-' for label in labels)
                      + f" | {mine.get('supervised', {}).get('switches', '-')} |")
-        print(f'{name} {list(start)}: ' + ', '.join(f'{k} {cell(v)}' for k, v in mine.items()),
-              flush=True)
     return '\n'.join(lines)
 
 
-def monitor_part(workers, rows):
-    """The robust part's runs, bare, bare from a nudged start (NUDGE) and under each of
-    MONITOR_VARIANTS, in `workers` processes, appended to `rows`; their table
-    (`monitor_table`)."""
-    nudge = np.array([NUDGE, 0.0, 0.0, 0.0])
-    runs = [(label, start, plant) for plant in ROBUST_PLANTS.values() for start in STARTS
-            for label in ['bare', NUDGED, *MONITOR_VARIANTS]]
-    jobs = [('bare', list(np.add(start, nudge)), {}, plant) if label == NUDGED
-            else (label, start, {}, plant) for label, start, plant in runs]
-    with concurrent.futures.ProcessPoolExecutor(workers) as pool:
-        flown = list(pool.map(fly, *zip(*jobs)))
-    for (label, start, plant), row in zip(runs, flown):
-        row.update(law=label, start=list(start), part='monitor',
-                   plant=next(k for k, v in ROBUST_PLANTS.items() if v is plant))
-        rows.append(row)
-    return monitor_table([row for row in rows if row['part'] == 'monitor'])
+def nudge(monitor, nudged):
+    """How far the yardstick's starts are moved in theta from the monitor part's; ValueError
+    unless the two specs differ in that alone (and their laws)."""
+    moved = np.subtract(nudged.start_list, monitor.start_list) if len(
+        nudged.start_list) == len(monitor.start_list) else None
+    if moved is None or np.any(moved[:, 1:]) or [c.label for c in nudged.cases] != [
+            c.label for c in monitor.cases] or nudged.seed != monitor.seed:
+        raise ValueError(f"{SPECS['monitor_nudged']}: must be {SPECS['monitor']}'s starts, in "
+                         'its order, moved in theta alone, with its cases and seed')
+    return float(np.max(np.abs(moved[:, 0])))
+
+
+def monitor_rows(monitor, rows, nudged, nudged_rows):
+    """The monitor part's rows, the yardstick's first (law 'bare, theta0 + <nudge> rad', at
+    the start it was moved from)."""
+    moved = results(nudged, nudged_rows, 'monitor', starts=monitor.start_list)
+    for row in moved:
+        row['law'] = f'bare, theta0 + {nudge(monitor, nudged):g} rad'
+    return moved + results(monitor, rows, 'monitor')
 
 
 def monitor_table(rows):
@@ -152,10 +160,10 @@ def monitor_table(rows):
 
 def parser():
     p = argparse.ArgumentParser(prog='assurance', description=__doc__.split('\n\n')[0])
-    p.add_argument('--parts', nargs='+', default=['nominal', 'swing', 'robust'],
-                   choices=('nominal', 'swing', 'robust', 'monitor'))
-    p.add_argument('--workers', type=int, default=2,
-                   help='processes the monitor part flies in (default 2)')
+    p.add_argument('--parts', nargs='+', default=['nominal', 'swing', 'robust'], choices=PARTS)
+    p.add_argument('--steps', type=int, help="steps per run (default: the specs', 2000)")
+    p.add_argument('--runs', type=int, help="the first N runs of each part (default: all)")
+    campaigns.add_engine_options(p)
     p.add_argument('--out', default=os.path.join('lab', 'results', 'assurance'))
     p.add_argument('--page', default=PAGE)
     return p
@@ -163,30 +171,43 @@ def parser():
 
 def main(argv=None):
     args = parser().parse_args(argv)
-    if args.page:
-        try:
-            check_page(args.page, marker_name(args.out))
-        except ValueError as error:
-            print(f'assurance: {error}', file=sys.stderr)
-            return 2
+    engine = {'steps': args.steps, 'runs': args.runs, 'workers': args.workers,
+              'address': args.address}
     rows, sections = [], []
-    cells = 'each cell: settle tau (swing [rad], ratio to the minimum time at that swing)'
-    if 'nominal' in args.parts:
-        sections.append('Nominal plant, shipped settings (' + cells + '):\n\n'
-                        + part('nominal', {}, None, ['bare', 'supervised'], rows))
-    if 'swing' in args.parts:
-        sections.append('Swing bound 0.4 rad (`theta_max 0.4`; ' + cells + '):\n\n'
-                        + part('swing', {'theta_max': 0.4}, None,
-                               ['bare', 'supervised', 'fallback alone'], rows))
-    if 'robust' in args.parts:
-        for label, plant in ROBUST_PLANTS.items():
-            sections.append(f'{label} ({cells}):\n\n'
-                            + part(label, {}, plant, ['bare', 'supervised'], rows))
-    if 'monitor' in args.parts:
+    try:
+        if args.page:
+            check_page(args.page, marker_name(args.out))
+        flown = {part: fly(part, args.out, **engine) for part in PARTS if part in args.parts}
+        if 'monitor' in args.parts:
+            flown['monitor_nudged'] = fly('monitor_nudged', args.out, **engine)
+            nudge(flown['monitor'][0], flown['monitor_nudged'][0])
+    except ValueError as error:
+        print(f'assurance: {error}', file=sys.stderr)
+        return 2
+    titles = {'nominal': f'Nominal plant, shipped settings ({CELLS})',
+              'swing': f'Swing bound 0.4 rad (`theta_max 0.4`; {CELLS})'}
+    for part in ('nominal', 'swing'):
+        if part in flown:
+            mine = results(*flown[part], part)
+            rows += mine
+            sections.append(f'{titles[part]}:\n\n' + part_table(flown[part][0], mine))
+    if 'robust' in flown:
+        campaign, part_rows = flown['robust']
+        for case in campaign.cases:
+            mine = [row for row in results(campaign, part_rows, case.label)
+                    if row['plant'] == case.label]
+            if not mine:        # a case beyond --runs
+                continue
+            rows += mine
+            sections.append(f'{case.label} ({CELLS}):\n\n' + part_table(campaign, mine))
+    if 'monitor' in flown:
+        mine = monitor_rows(*flown['monitor'], *flown['monitor_nudged'])
+        rows += mine
+        starts = len(flown['monitor'][0].start_list)
         sections.append('The robust part under other monitor settings (runs of '
-                        f'{len(STARTS)} starts per plant; a run is slower or faster than bare '
+                        f'{starts} starts per plant; a run is slower or faster than bare '
                         f'when its settle time differs by more than half a step):\n\n'
-                        + monitor_part(args.workers, rows))
+                        + monitor_table(mine))
     text = '\n\n'.join(sections) + '\n'
     publish(args.out, 'assurance', rows, text, args.page, marker=marker_name(args.out))
     return 0

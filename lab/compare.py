@@ -3,7 +3,8 @@ the settle time) from the comparison and the held-out starts, scored against the
 frontier.
 ROS-free (the DDS loop is step-identical).
 
-    python -m lab.compare [--law ...] [--out lab/results/comparison]
+    python -m lab.compare [--law ...] [--workers N | --address ADDR]
+        [--out lab/results/comparison]
 
 Every law runs offset-free (the default observer) with its settings from a preset: 'tuned' (the
 laws' defaults, set by lab/tune.py --objective worst-ratio, the largest frontier ratio),
@@ -13,9 +14,12 @@ tuned for the ratio with the state weight's cross terms); a preset file shows th
 names. Per run: settle time
 into the 1% zone, swing, the frontier at that swing from that start (evaluation/frontier.py,
 computed by the project's own minimum-time solver) and the ratio, tension integral and peak,
-the law's compute time per step (median, p99) and solver fallbacks. Writes comparison.md,
-comparison.json and a plot per start (every preset but 'untuned'), and the page's tables into
---page between the markers named after --out (`--page ""`: none).
+the law's compute time per step (median, p99) and solver fallbacks. The runs are one campaign
+(every law under every preset from every start) flown through the product's campaign API
+(`tsr_koopman_ctrl.campaign`) into --out, resumed where --out holds its rows (a finished one is
+read again, not flown: remove it to fly anew). Writes comparison.md, comparison.json and a
+plot per start (every preset but 'untuned'), and the page's tables into --page between the
+markers named after --out (`--page ""`: none).
 """
 
 import argparse
@@ -25,34 +29,28 @@ import sys
 import numpy as np
 from tsr_sim import dynamics
 
-from tsr_koopman_ctrl.control import closed_loop, CONTROLLERS, make_controller
+from tsr_koopman_ctrl.control import CONTROLLERS
 from tsr_koopman_ctrl.control.registry import law_class, preset
-from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
+from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments, plot_ratios
 from tsr_koopman_ctrl import arguments
+from lab.campaigns import add_engine_options, fly
 from lab.report import check_page, marker_name, stamp, write_into_page, write_results
 
 #: How far a run's swing may pass a swing bound and still have held it [rad].
 HELD_TOLERANCE = 0.005
 
 
-def run(law, settings, start, steps):
-    controller, seconds = make_controller(law, **settings), []
-    states, tensions = closed_loop(controller, start, steps, compute_seconds=seconds)
-    row = run_figures(np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions,
-                      start=start, halted=len(states) <= steps)
-    us = np.array(seconds) * 1e6
-    row.update(compute_median_us=float(np.median(us)),
-               compute_p99_us=float(np.percentile(us, 99)), fallbacks=controller.fallbacks)
-    return row, (np.arange(len(states)) * dynamics.PAPER_STEP, states, tensions)
+#: What a comparison's campaign rows carry beyond their own: the compute's tail, the solver's
+#: fallbacks, and the loop (the plots'; `run_figures` of it gives the rest of the table).
+FIGURES = ('compute_p99_ms', 'fallbacks', 'states', 'tensions')
 
 
-def compare(laws, presets, steps, theta_max=None):
-    """Rows and loops of every law under every preset from every start. `theta_max`: a hard
-    swing bound given to the laws that take one (the others are left out)."""
-    rows, loops = [], {}
-    starts = [(s, 'comparison') for s in COMPARISON_STARTS] + \
-        [(s, 'held-out') for s in HELD_OUT_STARTS]
+def campaign(laws, presets, steps, theta_max=None):
+    """(the campaign of every law under every preset from every start, {law label: (law,
+    preset label, plotted)}). `theta_max`: a hard swing bound given to the laws that take one
+    (the others are left out)."""
+    from tsr_koopman_ctrl.campaign import Campaign
     if theta_max is not None:
         bounded = [law for law in CONTROLLERS
                    if 'theta_max' in law_class(law).Settings.__dataclass_fields__]
@@ -70,27 +68,56 @@ def compare(laws, presets, steps, theta_max=None):
         if name != 'tuned' and not set(values) & set(laws):
             raise ValueError(f'--presets {name}: sets none of the laws compared '
                              f'({list(laws)}), only {sorted(values)}')
-    for name, values in preset_values.items():
+    entries, meaning = [], {}
+    for index, (name, values) in enumerate(preset_values.items()):
         for law in laws:
-            label = name
             if name != 'tuned' and law not in values:
                 continue    # a preset file shows the laws it names, not defaults under its name
             settings = dict(values.get(law, {}))
+            label = name
             if theta_max is not None:
                 settings['theta_max'] = theta_max
                 label += f', |theta| <= {theta_max:g}'
-            for start, kind in starts:
-                row, loop = run(law, settings, start, steps)
-                row.update(law=law, preset=label, start=list(start), starts=kind)
-                rows.append(row)
-                plotted = loops.setdefault(tuple(start), {})
-                # Untuned runs stay out of the plots: ten curves per panel are already many.
-                if os.path.splitext(os.path.basename(name))[0] != 'untuned':
-                    plotted[f'{law} ({label})'] = loop
-                settle, ratio = row['settle_tau'], row['frontier_ratio']
-                print(f'{law} ({label}) from {list(start)}: settle '
-                      f"{'-' if settle is None else f'{settle:.2f}'}, ratio "
-                      f"{'-' if ratio is None else f'{ratio:.3f}'}", flush=True)
+            key = f'{law}_preset_{index}'       # a campaign label: a name, one per (law, preset)
+            entries.append({'law': law, 'label': key, 'settings': {law: settings}})
+            # Untuned runs stay out of the plots: ten curves per panel are already many.
+            meaning[key] = (law, label, os.path.splitext(os.path.basename(name))[0] != 'untuned')
+    spec = {'steps': steps, 'start': ['comparison', 'held_out'], 'laws': entries,
+            'figures': list(FIGURES)}
+    return Campaign.parse(spec, where='compare'), meaning
+
+
+def compare(laws, presets, steps, theta_max=None, out=None, workers=None, address=None):
+    """Rows and loops of every law under every preset from every start, flown as one campaign
+    into `out` (resumed if begun there)."""
+    flown, meaning = campaign(laws, presets, steps, theta_max)
+    found = fly(flown, out, workers, address)
+    order = [entry.label for entry in flown.laws]
+    comparison = len(COMPARISON_STARTS)
+    rows, loops = [], {}
+    for record in sorted(found.to_dict('records'),
+                         key=lambda r: (order.index(r['law']), int(r['run']))):
+        law, label, plotted = meaning[record['law']]
+        start = list(flown.start_list[flown.position(int(record['run']))[0]])
+        states = np.array([list(x) for x in record['states']], dtype=float)
+        tensions = np.asarray(record['tensions'], dtype=float)
+        tau = np.arange(len(states)) * dynamics.PAPER_STEP
+        row = run_figures(tau, states, tensions, start=start, halted=bool(record['halted'])) \
+            if len(states) else {'settle_tau': None, 'swing': float('nan'), 'halted': True,
+                                 'frontier_tau': None, 'frontier_ratio': None,
+                                 'tension_integral': 0.0, 'tension_max': 0.0}
+        row.update(compute_median_us=float(record['compute_median_ms']) * 1e3,
+                   compute_p99_us=float(record['compute_p99_ms']) * 1e3,
+                   fallbacks=int(record['fallbacks']), law=law, preset=label, start=start,
+                   starts='comparison' if flown.position(int(record['run']))[0] < comparison
+                   else 'held-out')
+        rows.append(row)
+        if plotted:
+            loops.setdefault(tuple(start), {})[f'{law} ({label})'] = (tau, states, tensions)
+        settle, ratio = row['settle_tau'], row['frontier_ratio']
+        print(f'{law} ({label}) from {start}: settle '
+              f"{'-' if settle is None else f'{settle:.2f}'}, ratio "
+              f"{'-' if ratio is None else f'{ratio:.3f}'}", flush=True)
     return rows, loops
 
 
@@ -218,6 +245,7 @@ def parser():
     p.add_argument('--theta-max', type=arguments.number(above=0), metavar='RAD',
                    help='a swing bound for the laws that take one (koopman_mpc: soft; '
                    'physics_nmpc, koopman_nmpc: exact penalty); the others are left out')
+    add_engine_options(p)
     p.add_argument('--out', default=os.path.join('out', 'comparison'), type=arguments.output_dir)
     p.add_argument('--page', default='', help='a docs page to write the tables into, between '
                    'the markers named after --out (docs/comparison.md has them)')
@@ -229,7 +257,8 @@ def main(argv=None):
     try:
         if args.page:
             check_page(args.page, marker_name(args.out))
-        rows, loops = compare(args.law, args.presets, args.steps, args.theta_max)
+        rows, loops = compare(args.law, args.presets, args.steps, args.theta_max, args.out,
+                              args.workers, args.address)
     except ValueError as error:
         print(f'compare: {error}', file=sys.stderr)
         return 2

@@ -160,12 +160,8 @@ def test_no_import_cycle_among_the_control_modules():
         ' -> '.join(m.rpartition('.')[2] or m for m in cycle) for cycle in cycles)
 
 
-#: Modules whose owners still call difflib themselves (each to use `schema.did_you_mean`).
-OWN_DID_YOU_MEAN = {'tsr_koopman_ctrl.campaign.spec'}
-
-
 def test_one_did_you_mean():
     """Every refusal of an unknown name hints alike: one function (`tsr_sim.schema.did_you_mean`)
     and no other caller of difflib."""
     callers = {name for name, path in modules() if 'difflib' in imports(path, name)}
-    assert callers - OWN_DID_YOU_MEAN == {'tsr_sim.schema'}
+    assert callers == {'tsr_sim.schema'}

@@ -77,25 +77,33 @@ def test_a_preset_file_shows_the_laws_it_names(tmp_path, capsys):
     without = tmp_path / 'without.yaml'
     without.write_text('/**:\n  ros__parameters:\n    koopman_mpc:\n      horizon: 4\n')
     assert compare.main(['--law', 'linear_lqr', 'koopman_mpc', '--presets', 'tuned',
-                         str(without), 'untuned', '--steps', '200', '--out', str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / 'comparison.json').read_text())
+                         str(without), 'untuned', '--steps', '200', '--out',
+                         str(tmp_path / 'three')]) == 0
+    rows = json.loads((tmp_path / 'three' / 'comparison.json').read_text())
     lqr = [r for r in rows if r['law'] == 'linear_lqr']
     assert [r['preset'] for r in lqr] == ['tuned'] * 9 + ['untuned'] * 9
     # ... and the untuned rows ran the untuned settings, not the defaults again.
     assert all(a['swing'] != b['swing'] for a, b in zip(lqr[:9], lqr[9:]))
     assert [r['preset'] for r in rows if r['law'] == 'koopman_mpc'] == \
         ['tuned'] * 9 + [str(without)] * 9 + ['untuned'] * 9
-    (tmp_path / 'comparison.json').unlink()
+    capsys.readouterr()
     assert compare.main(['--law', 'fractional_pd', '--presets', str(without), '--steps', '200',
-                         '--out', str(tmp_path)]) == 2
+                         '--out', str(tmp_path / 'none')]) == 2
     assert capsys.readouterr().err == (
         f"compare: --presets {without}: sets none of the laws compared (['fractional_pd']), "
         "only ['koopman_mpc']\n")
-    assert not (tmp_path / 'comparison.json').exists()
+    assert not (tmp_path / 'none').exists()
     # A repeated preset runs once.
     assert compare.main(['--law', 'linear_lqr', '--presets', 'untuned', 'untuned',
-                         '--steps', '200', '--out', str(tmp_path)]) == 0
-    assert len(json.loads((tmp_path / 'comparison.json').read_text())) == 9
+                         '--steps', '200', '--out', str(tmp_path / 'once')]) == 0
+    assert len(json.loads((tmp_path / 'once' / 'comparison.json').read_text())) == 9
+    # Flown again into the same directory, the campaign is read back, not flown; another
+    # comparison there is refused in one line.
+    assert compare.main(['--law', 'linear_lqr', '--presets', 'untuned', '--steps', '200',
+                         '--out', str(tmp_path / 'once')]) == 0
+    assert compare.main(['--law', 'linear_lqr', '--presets', 'tuned', '--steps', '200',
+                         '--out', str(tmp_path / 'once')]) == 2
+    assert 'the spec differs' in capsys.readouterr().err
 
 
 def docs_table(page, head):

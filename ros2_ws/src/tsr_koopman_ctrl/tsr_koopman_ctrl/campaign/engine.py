@@ -20,24 +20,53 @@ import numpy as np
 from tsr_koopman_ctrl.campaign import rows as stored
 from tsr_koopman_ctrl.campaign.spec import Campaign
 
-#: The figures a row carries, in column order, after the case's own columns.
+#: The figures a row carries, in column order, after the case's own columns; then the spec's
+#: `figures` (spec.EXTRA_FIGURES), in its order.
 FIGURE_COLUMNS = ('settle_tau', 'swing', 'halted', 'compute_median_ms', 'corrections',
                   'correction_sum', 'switches', 'frontier_ratio', 'error', 'run_seconds')
 
 
+def extra_figures(names, figures, law, seconds, loop):
+    """{name: value} of the EXTRA_FIGURES `names` of one run, its `loop` (states, tensions)
+    for the trajectories (NaN, or no samples, where the run gave none: a law that gave no
+    tension)."""
+    from tsr_sim.dynamics import LENGTH_OFFSET
+    final = figures.get('final_state')
+    own = {'final_length_offset': final[LENGTH_OFFSET] if final else None,
+           'compute_p99_ms': float(np.percentile(seconds, 99)) * 1e3 if seconds else None}
+    trajectories = {'states': [list(map(float, x)) for x in loop[0]],
+                    'tensions': [float(u) for u in loop[1]]}
+    row = {}
+    for name in names:
+        if name == 'fallbacks':
+            row[name] = int(getattr(law, 'fallbacks', 0))
+            continue
+        if name in trajectories:
+            row[name] = trajectories[name]
+            continue
+        value = own[name] if name in own else figures.get(name)
+        row[name] = math.nan if value is None else float(value)
+    return row
+
+
 def fly(campaign, run, label):
-    """The row of `run` flown by the law labelled `label`: the run's number, noise seed and
-    dispersed values, its start (x0_0..x0_3), the law, its figures. A law that gives no tension
-    (a non-finite one) fails the run: `error` says why, `halted` is true."""
+    """The row of `run` flown by the law labelled `label`: the run's number, noise seed, plant
+    case (in a campaign with cases) and dispersed values, its start (x0_0..x0_3), the law, its
+    figures. A law that gives no tension (a non-finite one) fails the run: `error` says why,
+    `halted` is true."""
     from threadpoolctl import threadpool_limits
 
-    from tsr_koopman_ctrl.control import make_controller
+    from tsr_sim.dynamics import PAPER_STEP
+
+    from tsr_koopman_ctrl.control import closed_loop, make_controller
     from tsr_koopman_ctrl.control.excitation import Excitation
-    from tsr_koopman_ctrl.evaluation.figures import closed_loop_figures
+    from tsr_koopman_ctrl.evaluation.figures import run_figures
     case = campaign.case(run)
     entry = campaign.law(label)
     sections = entry.settings
-    row = {'run': run, 'seed': case.seed, **case.dispersed,
+    row = {'run': run, 'seed': case.seed,
+           **({'case': case.plant_case} if campaign.cases else {}),
+           **{name: case.dispersed.get(name, math.nan) for name in campaign.dispersed_names()},
            **{f'x0_{i}': float(v) for i, v in enumerate(case.x0)}, 'law': label}
     began = time.perf_counter()
     # One thread a worker: the workers are the parallelism, BLAS pools would fight them.
@@ -47,12 +76,16 @@ def fly(campaign, run, label):
                               safety=sections.get('safety_filter'),
                               **sections.get(entry.law, {}))
         excitation = Excitation(**sections['excitation']) if 'excitation' in sections else None
-        seconds = []
+        seconds, start = [], list(case.x0)
         try:
-            figures = closed_loop_figures(law, list(case.x0), campaign.steps, plant=case.plant,
-                                          excitation=excitation, compute_seconds=seconds)
+            # As evaluation.closed_loop_figures scores a run, its loop kept for `figures`.
+            loop = closed_loop(law, start, campaign.steps, plant=case.plant,
+                               excitation=excitation, compute_seconds=seconds)
+            figures = run_figures(np.arange(len(loop[0])) * PAPER_STEP, *loop, start=start,
+                                  halted=len(loop[0]) <= campaign.steps)
             error = ''
         except ValueError as failure:
+            loop = ((), ())
             figures, error = {'settle_tau': None, 'swing': math.nan, 'halted': True,
                               'frontier_ratio': None}, str(failure)
 
@@ -65,6 +98,7 @@ def fly(campaign, run, label):
         'corrections': int(law.corrections), 'correction_sum': float(law.correction_sum),
         'switches': int(law.switches), 'frontier_ratio': number(figures['frontier_ratio']),
         'error': error, 'run_seconds': time.perf_counter() - began})
+    row.update(extra_figures(campaign.figures, figures, law, seconds, loop))
     return row
 
 
@@ -169,6 +203,13 @@ def differences(row, other):
         a, b = row[key], other.get(key)
         if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
             continue
-        if a != b:
+        if isinstance(a, (list, np.ndarray)) or isinstance(b, (list, np.ndarray)):
+            # A trajectory: a stored one reads back as arrays of arrays.
+            same = b is not None and len(a) == len(b) and all(
+                np.array_equal(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+                for x, y in zip(a, b))
+            if not same:
+                found.append(key)
+        elif a != b:
             found.append(key)
     return found

@@ -108,8 +108,9 @@ def write_report(out):
     rows = stored.read_rows(out)
     limit = campaign.swing_limit
     labels = [e.label for e in campaign.laws]
-    lines = [f'# Campaign: {campaign.runs} runs x {len(labels)} laws, {campaign.steps} steps, '
-             f'seed {campaign.seed}', '',
+    cases = f' ({len(campaign.cases)} plant cases)' if campaign.cases else ''
+    lines = [f'# Campaign: {campaign.runs} runs{cases} x {len(labels)} laws, {campaign.steps} '
+             f'steps, seed {campaign.seed}', '',
              f'{len(rows)} of {len(campaign.pairs())} runs flown. Success: not halted (left '
              'the domain or tumbled)' + (f' and swing <= {limit:g} rad' if limit else '') +
              f'; bounds: {CONFIDENCE:.0%} Clopper-Pearson.', '']
@@ -134,6 +135,8 @@ def write_report(out):
     lines += ['## Success per law', '', _table(
         ['law', 'successes', 'rate', '95% bounds', 'median settle tau', 'max swing [rad]',
          'compute median [ms]', 'corrections', 'switches'], table), '']
+    if campaign.cases:
+        lines += _per_case(rows, labels, [c.label for c in campaign.cases], ok)
     _plots(out, rows, labels, ok, limit)
     lines += ['![settle, swing and compute per law](distributions.png)', '',
               '![the dispersed starts, by outcome](starts.png)', '']
@@ -151,8 +154,10 @@ def write_report(out):
             local, dds = replay_commands(out, campaign, row)
             start = ', '.join(f'{row[f"x0_{i}"]:.4g}' for i in range(4))
             dispersed = ''.join(f', {name} {row[name]:.4g}'
-                                for name in campaign.dispersed_names())
-            lines += [f'- run {int(row["run"])}: {outcome(row, limit)}, settle '
+                                for name in campaign.dispersed_names()
+                                if not math.isnan(row[name]))
+            case = f', case {row["case"]}' if campaign.cases else ''
+            lines += [f'- run {int(row["run"])}{case}: {outcome(row, limit)}, settle '
                       f'{_figure(row["settle_tau"])}, swing {_figure(row["swing"])}; start '
                       f'[{start}]{dispersed}' + (f'; {row["error"]}' if row['error'] else ''),
                       f'  - `{local}`', f'  - `{dds}`']
@@ -161,6 +166,24 @@ def write_report(out):
     with open(os.path.join(out, 'report.md'), 'w') as f:
         f.write(text)
     return text
+
+
+def _per_case(rows, labels, cases, ok):
+    """Each law's successes on each plant case."""
+    table = []
+    for label in labels:
+        for case in cases:
+            mine = (rows['law'] == label) & (rows['case'] == case)
+            n, k = int(mine.sum()), int((ok & mine).sum())
+            if not n:
+                continue
+            low, high = clopper_pearson(k, n)
+            table.append([f'`{label}`', case, f'{k} / {n}', f'[{low:.1%}, {high:.1%}]',
+                          _figure(rows.loc[mine, 'settle_tau'].median()),
+                          _figure(rows.loc[mine, 'swing'].max())])
+    return ['## Success per law and plant case', '', _table(
+        ['law', 'case', 'successes', '95% bounds', 'median settle tau', 'max swing [rad]'],
+        table), '']
 
 
 def _paired(rows, labels, ok):

@@ -10,25 +10,40 @@
       distribution: uniform   # or normal (truncated to the box, sigma a quarter of it), or
                               # one per component
     # start: [[0, 0, -0.99, 0.5], [0, 0, -0.9, 0.3]]   # ... or a list: run n flies n mod len
-    # start: [comparison, held_out]                     # ... or named sets (NAMED_STARTS)
+    # start: [comparison, held_out]                     # ... or named sets (NAMED_STARTS),
+    # start: [comparison, [0.1, -0.1, -0.9, 0.5]]       #     alone or among starts
+    # start: {grid: [[-0.3, 0, 0.3], [0], [-0.99, -0.9], [-0.5, 0, 0.5]]}
+    #                         # ... or a grid: every combination of the values per component,
+    #                         # the last component varying fastest (here 18 starts)
     plant:                    # default: the nominal plant
       variant: heavy_robot    # a named plant variant (tsr_sim/config/plants) to start from
       actuator_gain: {low: 0.8, high: 1.2}               # dispersed, as a start component
       actuator_lag: {low: 0.0, high: 0.05, distribution: normal}
       sensor_noise_std: 0.001                            # fixed; every component's std
+    cases:                    # optional: named plant cases, each over `plant` (full factorial)
+      - {label: nominal}
+      - {label: weak and lagging, actuator_gain: 0.8, actuator_lag: 0.05}
     laws:
       - koopman_nmpc
       - {law: koopman_nmpc, label: nmpc_bare, set: [supervisor.fallback=none]}
     set: [observer.disturbance=none]    # as deploy --set, for every law it applies to
+    figures: [final_length_offset]      # optional: figures a row carries beyond the default
+
+Cases: each is a label (any text, its rows' `case` column) and plant parameters, fixed or
+dispersed, merged over the common `plant` (a case's value replaces the common one; a case's
+`variant` replaces the common variant). Every start flies every case: with S starts (a box
+counts as one) and C cases, run n flies start n mod S and case (n // S) mod C, and the runs
+default to S * C (100 * C for a box). Without cases every run flies the common plant.
 
 Plant parameters are the simulator's (`tsr_sim.plant.PLANT_PARAMETERS`, their declared ranges,
 and the units' `mass`); `sensor_noise_std` takes one std for every component, `initial_beta`
 (with `out_of_plane: true`) the start's beta (beta' 0). Laws and settings are the registry's.
+`figures` names extra columns (EXTRA_FIGURES); the default row is the engine's FIGURE_COLUMNS.
 Every mistake is one ValueError line.
 """
 
 import dataclasses
-import difflib
+import itertools
 import math
 import numbers
 
@@ -36,6 +51,7 @@ import numpy as np
 from tsr_sim import dynamics
 from tsr_sim.plant import (check_plant_parameter_names, check_plant_parameter_values,
                            PLANT_PARAMETERS, plant_parameters, SCALE_PARAMETERS)
+from tsr_sim.schema import did_you_mean
 
 from tsr_koopman_ctrl.control.registry import CONTROLLERS, law_class, NODE_SECTIONS, \
     settings_class
@@ -54,16 +70,20 @@ OWN_PARAMETERS = ('initial_state', 'max_steps', 'step', 'seed')
 SCALAR_FORMS = ('sensor_noise_std', 'initial_beta')
 DEFAULT_RUNS = 100
 DEFAULT_STEPS = 1500
-SPEC_KEYS = ('runs', 'steps', 'seed', 'swing_limit', 'start', 'plant', 'laws', 'set')
+SPEC_KEYS = ('runs', 'steps', 'seed', 'swing_limit', 'start', 'plant', 'cases', 'laws', 'set',
+             'figures')
 LAW_KEYS = ('law', 'label', 'set', 'settings')
+#: Figures a spec may add to its rows (`figures:`), after the engine's own, in the spec's order;
+#: `states` and `tensions` are the run's trajectory (a list per step, a number per step).
+EXTRA_FIGURES = ('final_length_offset', 'frontier_tau', 'tension_integral', 'tension_max',
+                 'length_overshoot', 'compute_p99_ms', 'fallbacks', 'states', 'tensions')
 
 
 def _refuse_unknown(keys, known, where):
     for key in keys:
         if key not in known:
-            close = difflib.get_close_matches(str(key), known, n=1)
-            hint = f' (did you mean {close[0]!r}?)' if close else ''
-            raise ValueError(f'{where}: unknown key {key!r}{hint}; keys: {", ".join(known)}')
+            raise ValueError(f'{where}: unknown key {key!r}{did_you_mean(key, known)}; keys: '
+                             f'{", ".join(known)}')
 
 
 def _number(value, where):
@@ -134,15 +154,28 @@ class LawEntry:
 
 
 @dataclasses.dataclass(frozen=True)
+class PlantCase:
+    """A named plant case (`cases:`): its label (its rows' `case`), the plant variant it starts
+    from (None: the spec's), its fixed and dispersed parameters over the spec's plant."""
+
+    label: str
+    variant: str
+    fixed: dict
+    dispersed: dict
+
+
+@dataclasses.dataclass(frozen=True)
 class Case:
     """What one run flies: its number, its noise seed, the dimensionless start, the plant
-    parameters (`closed_loop(plant=...)`) and the dispersed values by name."""
+    parameters (`closed_loop(plant=...)`), the dispersed values by name and the label of its
+    plant case (None in a campaign without cases)."""
 
     run: int
     seed: int
     x0: tuple
     plant: dict
     dispersed: dict
+    plant_case: str = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,6 +192,8 @@ class Campaign:
     variant: str = None
     plant_fixed: dict = dataclasses.field(default_factory=dict)
     plant_dispersed: dict = dataclasses.field(default_factory=dict)
+    cases: tuple = ()               # (PlantCase,): none, every run flies the plant above
+    figures: tuple = ()             # the EXTRA_FIGURES its rows carry
 
     @classmethod
     def parse(cls, spec, where='spec'):
@@ -166,7 +201,11 @@ class Campaign:
             raise ValueError(f'{where}: a spec is a mapping of {", ".join(SPEC_KEYS)}')
         _refuse_unknown(spec, SPEC_KEYS, where)
         start_box, start_list = _parse_start(spec.get('start'), f'{where}: start')
-        default_runs = DEFAULT_RUNS if start_box else len(start_list)
+        # With cases, each case's merged plant is checked instead of the common one alone.
+        variant, fixed, dispersed = _parse_plant(spec.get('plant') or {}, f'{where}: plant',
+                                                 check='cases' not in spec)
+        cases = _parse_cases(spec.get('cases'), (variant, fixed, dispersed), f'{where}: cases')
+        default_runs = (DEFAULT_RUNS if start_box else len(start_list)) * max(1, len(cases))
         runs = _count(spec.get('runs', default_runs), f'{where}: runs', 1)
         steps = _count(spec.get('steps', DEFAULT_STEPS), f'{where}: steps', 1)
         seed = _count(spec.get('seed', 0), f'{where}: seed', 0)
@@ -178,9 +217,9 @@ class Campaign:
             if swing_limit <= 0:
                 raise ValueError(f'{where}: swing_limit must be > 0, got {swing_limit:g}')
         laws = _parse_laws(spec.get('laws'), spec.get('set', []), where)
-        variant, fixed, dispersed = _parse_plant(spec.get('plant') or {}, f'{where}: plant')
+        figures = _parse_figures(spec.get('figures'), f'{where}: figures')
         return cls(runs, steps, seed, laws, swing_limit, start_box, start_list, variant, fixed,
-                   dispersed)
+                   dispersed, cases, figures)
 
     def as_dict(self):
         """The spec in its canonical form (every default explicit): what <out>/spec.yaml holds
@@ -189,12 +228,18 @@ class Campaign:
                   'high': [d.high for d in self.start_box],
                   'distribution': [d.distribution for d in self.start_box]}
                  if self.start_box else [list(x) for x in self.start_list])
-        plant = {**({'variant': self.variant} if self.variant else {}), **self.plant_fixed,
-                 **{name: d.as_dict() for name, d in self.plant_dispersed.items()}}
-        return {'runs': self.runs, 'steps': self.steps, 'seed': self.seed,
+        plant = _plant_dict(self.variant, self.plant_fixed, self.plant_dispersed)
+        spec = {'runs': self.runs, 'steps': self.steps, 'seed': self.seed,
                 'swing_limit': self.swing_limit, 'start': start, 'plant': plant,
                 'laws': [{'law': e.law, 'label': e.label, 'settings': _plain(e.settings)}
                          for e in self.laws]}
+        # Only where given, so that a stored spec without them reads back equal.
+        if self.cases:
+            spec['cases'] = [{'label': c.label, **_plant_dict(c.variant, c.fixed, c.dispersed)}
+                             for c in self.cases]
+        if self.figures:
+            spec['figures'] = list(self.figures)
+        return spec
 
     def law(self, label):
         for entry in self.laws:
@@ -208,27 +253,48 @@ class Campaign:
         return [(run, entry.label) for run in range(self.runs) for entry in self.laws]
 
     def dispersed_names(self):
-        """The names of the values that vary from run to run (their rows' columns)."""
-        return list(self.plant_dispersed)
+        """The names of the values that vary from run to run in any case (their rows'
+        columns; NaN in the rows of a case that does not disperse one)."""
+        return list(dict.fromkeys(name for index in range(max(1, len(self.cases)))
+                                  for name in self.plant_of(index)[2]))
+
+    def position(self, run):
+        """(start index, case index) of `run`: start run mod S (a box counts as one start),
+        case (run // S) mod C."""
+        starts = 1 if self.start_box else len(self.start_list)
+        return run % starts, (run // starts) % max(1, len(self.cases))
+
+    def plant_of(self, index):
+        """(variant, fixed, dispersed) of plant case `index`: the case's over the spec's plant
+        (the spec's alone without cases)."""
+        if not self.cases:
+            return self.variant, self.plant_fixed, self.plant_dispersed
+        return _merged(self.cases[index], self.variant, self.plant_fixed, self.plant_dispersed)
 
     def case(self, run):
         """Run `run`'s case, from (seed, run) alone (numpy SeedSequence): the same whatever
         the workers, their number or the order runs finish."""
         rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(run,)))
         noise_seed = int(rng.integers(PLANT_PARAMETERS['seed'][3] + 1))
+        start, case_index = self.position(run)
         if self.start_box:
             x0 = tuple(d.draw(float(u)) for d, u in zip(self.start_box, rng.random(len(
                 self.start_box))))
         else:
-            x0 = tuple(self.start_list[run % len(self.start_list)])
-        dispersed = {name: d.draw(float(u)) for (name, d), u in zip(
-            self.plant_dispersed.items(), rng.random(len(self.plant_dispersed)))}
-        plant = dict(plant_parameters(self.variant) if self.variant else {})
-        plant.update(self.plant_fixed)
+            x0 = tuple(self.start_list[start])
+        # One number per name dispersed in any case, in one order: a case's draws do not
+        # depend on what the other cases disperse.
+        names = self.dispersed_names()
+        uniforms = dict(zip(names, rng.random(len(names))))
+        variant, fixed, dispersions = self.plant_of(case_index)
+        dispersed = {name: d.draw(float(uniforms[name])) for name, d in dispersions.items()}
+        plant = dict(plant_parameters(variant) if variant else {})
+        plant.update(fixed)
         plant.update(dispersed)
         plant = simulator_form(plant)
         plant['seed'] = noise_seed
-        return Case(run, noise_seed, x0, plant, dispersed)
+        label = self.cases[case_index].label if self.cases else None
+        return Case(run, noise_seed, x0, plant, dispersed, label)
 
 
 def simulator_form(plant):
@@ -245,6 +311,21 @@ def simulator_form(plant):
     return plant
 
 
+def _plant_dict(variant, fixed, dispersed):
+    """A plant's spec form: its variant, fixed values and dispersions."""
+    return {**({'variant': variant} if variant else {}), **_plain(fixed),
+            **{name: d.as_dict() for name, d in dispersed.items()}}
+
+
+def _merged(case, variant, fixed, dispersed):
+    """(variant, fixed, dispersed) of `case` over a common plant: the case's values replace
+    the common ones, whether fixed or dispersed."""
+    fixed = {**{k: v for k, v in fixed.items() if k not in case.dispersed}, **case.fixed}
+    dispersed = {**{k: d for k, d in dispersed.items() if k not in case.fixed},
+                 **case.dispersed}
+    return case.variant or variant, fixed, dispersed
+
+
 def _plain(value):
     """Tuples as lists, for YAML."""
     if isinstance(value, dict):
@@ -259,14 +340,19 @@ def _parse_start(start, where):
         return None, (tuple(PAPER_START),)
     if isinstance(start, str):
         start = [start]
-    if isinstance(start, list) and start and all(isinstance(v, str) for v in start):
-        for name in start:
-            if name not in NAMED_STARTS:
-                raise ValueError(f'{where}: no start set {name!r}; named sets: '
+    if isinstance(start, list) and any(isinstance(v, str) for v in start):
+        named = []
+        for entry in start:
+            if isinstance(entry, str) and entry not in NAMED_STARTS:
+                raise ValueError(f'{where}: no start set {entry!r}; named sets: '
                                  f'{", ".join(NAMED_STARTS)}')
-        return None, tuple(x0 for name in start for x0 in NAMED_STARTS[name])
+            named += [list(x0) for x0 in NAMED_STARTS[entry]] if isinstance(entry, str) else [
+                entry]
+        start = named
+    if isinstance(start, dict) and 'grid' in start:
+        return None, _parse_grid(start, where)
     if isinstance(start, dict):
-        _refuse_unknown(start, ('low', 'high', 'distribution'), where)
+        _refuse_unknown(start, ('low', 'high', 'distribution', 'grid'), where)
         low, high = start.get('low'), start.get('high')
         distribution = start.get('distribution', 'uniform')
         size = dynamics.PLANAR_DIM
@@ -283,8 +369,8 @@ def _parse_start(start, where):
     if isinstance(start, list) and start and all(isinstance(v, numbers.Real) for v in start):
         start = [start]
     if not isinstance(start, list) or not start:
-        raise ValueError(f'{where} must be a box {{low, high, distribution}} or a list of '
-                         f'starts, got {start!r}')
+        raise ValueError(f'{where} must be a box {{low, high, distribution}}, a grid '
+                         f'{{grid: [values per component]}} or a list of starts, got {start!r}')
     starts = []
     for i, x0 in enumerate(start):
         if not isinstance(x0, list) or len(x0) != dynamics.PLANAR_DIM:
@@ -294,6 +380,78 @@ def _parse_start(start, where):
             raise ValueError(f'{where} {i} {list(x0)} is outside the model domain (l > 0)')
         starts.append(x0)
     return None, tuple(starts)
+
+
+def _parse_grid(start, where):
+    """The starts of `{grid: [values per component]}`: every combination, the last component
+    varying fastest."""
+    size = dynamics.PLANAR_DIM
+    if set(start) != {'grid'}:
+        raise ValueError(f'{where}: a grid takes no {", ".join(sorted(set(start) - {"grid"}))} '
+                         "(it is {grid: [theta values, theta' values, l - 1 values, l' "
+                         'values]})')
+    grid = start['grid']
+    if not isinstance(grid, list) or len(grid) != size or not all(
+            isinstance(values, list) and values for values in grid):
+        raise ValueError(f"{where}.grid needs {size} lists of values (theta, theta', l - 1, "
+                         f"l'), got {grid!r}")
+    values = [[_number(v, f'{where}.grid component {i}') for v in component]
+              for i, component in enumerate(grid)]
+    for i, component in enumerate(values):
+        if len(set(component)) != len(component):
+            raise ValueError(f'{where}.grid component {i} repeats a value: {component}')
+    starts = tuple(itertools.product(*values))
+    outside = [list(x0) for x0 in starts if not dynamics.in_domain(np.array(x0))]
+    if outside:
+        raise ValueError(f'{where}.grid: {len(outside)} starts are outside the model domain '
+                         f'(l > 0), e.g. {outside[0]}')
+    return starts
+
+
+def _parse_cases(cases, common, where):
+    """The (PlantCase,) of `cases:`, each checked merged over the `common` plant (variant,
+    fixed, dispersed); () for none."""
+    if cases is None:
+        return ()
+    if not isinstance(cases, list) or not cases:
+        raise ValueError(f'{where} must be a non-empty list of {{label: ..., plant '
+                         f'parameters}}, got {cases!r}')
+    parsed = []
+    for i, entry in enumerate(cases):
+        if not isinstance(entry, dict) or 'label' not in entry:
+            raise ValueError(f'{where} {i}: a case is {{label: ..., plant parameters}}, got '
+                             f'{entry!r}')
+        label = entry['label']
+        if not isinstance(label, str) or not label.strip() or '\n' in label:
+            raise ValueError(f'{where} {i}: label must be a line of text, got {label!r}')
+        if label in (c.label for c in parsed):
+            raise ValueError(f'{where} {i}: two cases share the label {label!r}: give each its '
+                             'own')
+        here = f'{where} {label!r}'
+        case = PlantCase(label, *_parse_plant({k: v for k, v in entry.items() if k != 'label'},
+                                              here, check=False))
+        variant, fixed, dispersed = _merged(case, *common)
+        _check_plant(variant, fixed, dispersed, here)
+        parsed.append(case)
+    return tuple(parsed)
+
+
+def _parse_figures(figures, where):
+    if figures is None:
+        return ()
+    if isinstance(figures, str):
+        figures = [figures]
+    if not isinstance(figures, list):
+        raise ValueError(f'{where} must be a list of figure names ({", ".join(EXTRA_FIGURES)})'
+                         f', got {figures!r}')
+    for name in figures:
+        if name not in EXTRA_FIGURES:
+            hint = did_you_mean(name, EXTRA_FIGURES)
+            raise ValueError(f'{where}: no figure {name!r}{hint}; figures a row may add: '
+                             f'{", ".join(EXTRA_FIGURES)}')
+    if len(set(figures)) != len(figures):
+        raise ValueError(f'{where} names a figure twice: {figures}')
+    return tuple(figures)
 
 
 def _parse_laws(laws, common, where):
@@ -358,19 +516,20 @@ def _assignments(assignments, where):
         assignments = [assignments]
     if not isinstance(assignments, list) or not all(isinstance(a, str) for a in assignments):
         raise ValueError(f'{where} takes SECTION.SETTING=VALUE strings, got {assignments!r}')
-    return parse_assignments(assignments)
+    return parse_assignments(assignments, settings_class)
 
 
-def _parse_plant(plant, where):
+def _parse_plant(plant, where, check=True):
+    """(variant, fixed, dispersed) of a plant mapping; its values checked unless not `check`
+    (a case's are checked merged over the common plant)."""
     if not isinstance(plant, dict):
         raise ValueError(f'{where} must be a mapping of plant parameters, got {plant!r}')
     plant = dict(plant)
     variant = plant.pop('variant', None)
-    base = {}
     if variant is not None:
         if not isinstance(variant, str):
             raise ValueError(f'{where}.variant must be a plant variant name, got {variant!r}')
-        base = plant_parameters(variant)
+        plant_parameters(variant)          # an unknown variant is one line
     check_plant_parameter_names(plant, where)
     for name in plant:
         if name in OWN_PARAMETERS:
@@ -388,13 +547,19 @@ def _parse_plant(plant, where):
             raise ValueError(f'{where}: {name} cannot be dispersed (a number with a declared '
                              'range can)')
         dispersed[name] = Dispersion.parse(value, f'{where}.{name}')
-    # Both ends of every range, and the fixed values, as the simulator would check them.
+    if check:
+        _check_plant(variant, fixed, dispersed, where)
+    return variant, fixed, dispersed
+
+
+def _check_plant(variant, fixed, dispersed, where):
+    """Both ends of every range, and the fixed values, as the simulator would check them."""
+    base = plant_parameters(variant) if variant else {}
     for end in ('low', 'high'):
         values = {**base, **fixed, **{n: getattr(d, end) for n, d in dispersed.items()}}
         check_plant_parameter_values(simulator_form(values), where)
     if 'initial_beta' in {**fixed, **dispersed} and not {**base, **fixed}.get('out_of_plane'):
         raise ValueError(f'{where}: initial_beta needs out_of_plane: true')
-    return variant, fixed, dispersed
 
 
 def load_spec(path=None, **overrides):

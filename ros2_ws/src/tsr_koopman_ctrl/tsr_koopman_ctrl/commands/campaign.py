@@ -29,8 +29,8 @@ def campaign_parser():
     parser.add_argument('--spec', help='a YAML spec file (tsr_koopman_ctrl.campaign.spec)')
     parser.add_argument('--law', nargs='+', choices=sorted(CONTROLLERS),
                         help="the laws flown on every case (replaces the spec's laws)")
-    parser.add_argument('--runs', type=cli.integer(1), help='dispersed cases (default 100, or '
-                        "the spec's number of starts)")
+    parser.add_argument('--runs', type=cli.integer(1), help="runs (default: the spec's starts "
+                        'x its plant cases; a start box counts 100 starts)')
     parser.add_argument('--steps', type=cli.STEPS, help='steps of h = 0.01 tau (default 1500)')
     parser.add_argument('--seed', type=cli.SEED, help='the campaign seed (default 0): every '
                         "run's values come from (seed, run)")
@@ -107,7 +107,7 @@ def replay_main(argv):
     except ValueError as error:
         parser.error(str(error))
     for key, value in row.items():
-        print(f'{key}: {value}')
+        print(f'{key}: ' + (f'({len(value)} samples)' if isinstance(value, list) else f'{value}'))
     if stored is None:
         print('[campaign] the campaign has no row for this run yet', flush=True)
         return 0
