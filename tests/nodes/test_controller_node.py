@@ -191,3 +191,13 @@ def test_a_repeated_state_gets_its_command_again_without_running_the_law_twice(r
     np.testing.assert_allclose([SCALE.tension_to_u(t) for _, t in commands],
                                [want_u[step] for step in steps], rtol=0, atol=1e-12)
     assert statuses == [0, 1]    # one compute (and one status) per step
+
+
+def test_no_compute_overruns_a_lockstep_simulator(tsr_loop):
+    """A lockstep simulator waits for each command, so the period between its states is the
+    loop's own: the learned NMPC's slower steps (several times its median compute) are no
+    overruns there, and /diagnostics shows no 'late' for them. On a timed simulator they
+    are (tests/nodes/test_hardware_loop.py)."""
+    run = tsr_loop(law='koopman_nmpc', steps=300).finish()
+    assert run.figures['steps'] == 300
+    assert run.figures['overruns'] == 0 and run.figures['dropped_states'] == 0

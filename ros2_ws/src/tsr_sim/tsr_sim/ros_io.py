@@ -59,6 +59,11 @@ COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: RunInfo read by a node that publishes its own too: every publisher's last one, so that
+#: another's arriving first does not push the simulator's out before it is read.
+RUN_INFO_READER_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                                 history=HistoryPolicy.KEEP_LAST,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: /diagnostics, as diagnostic_updater publishes it (an absolute name, shared by every node).
 DIAGNOSTICS_TOPIC = '/diagnostics'
 DIAGNOSTICS_PERIOD = 1.0

@@ -38,7 +38,8 @@ nothing. (rclpy in Jazzy gives no publisher identity with a message, so a stray 
 run flown is not told apart from the simulator's.) Within a run, a state older than one
 already answered is dropped and counted, and a state repeated exactly (a lockstep simulator
 republishes it when its command is late) gets the command it already got, resent. A compute
-longer than the period between states is an overrun, counted. With no state for
+longer than the period between states is an overrun, counted (not against a lockstep
+simulator, which waits for each command: its RunInfo says so). With no state for
 `state_timeout` wall seconds the node sends the stop every `state_timeout` seconds until states
 return.
 
@@ -73,9 +74,11 @@ from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from tsr_msgs.msg import ControllerStatus, Excitation, RunInfo, TensionCommand, TsrState
 from tsr_sim import dynamics
 from tsr_msgs.msg import SimStatus
+import yaml
 from tsr_sim.ros_io import (declare_schema, declare_scale, given_parameter_names, Health,
                             LATCHED_QOS, LOOP_PRIORITY, LOOP_PUBLISHER_QOS, MatchedReaders,
-                            Parameters, run_node, STATE_QOS, STATE_QUEUE_DEPTH, steady_timer)
+                            Parameters, RUN_INFO_READER_QOS, run_node, STATE_QOS,
+                            STATE_QUEUE_DEPTH, steady_timer)
 from tsr_sim.plant import SCALE_PARAMETERS
 from tsr_sim.schema import AT_CONFIGURE, LIVE as APPLIED_LIVE, names_applied
 from tsr_sim.units import Scale
@@ -171,6 +174,9 @@ class ControllerNode(LifecycleNode):
                                                   STATE_QOS)
         self.create_subscription(SimStatus, SIM_STATUS_TOPIC,
                                  lambda msg: setattr(self, 'sim_status', msg), LATCHED_QOS)
+        self.plant_waits = False     # the simulator is lockstep (its RunInfo says so)
+        self.create_subscription(RunInfo, RUN_INFO_TOPIC, self.on_run_info,
+                                 RUN_INFO_READER_QOS)
         self.timeout_timer = steady_timer(self, self.state_timeout, self.check_state_timeout)
         self.health = Health(self, 'controller', self.diagnose)
         self.parameters = Parameters(self, refuse=self.refuse_parameter)
@@ -214,8 +220,8 @@ class ControllerNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state):
-        # Within the same run the law resumes where the plant is (bumpless); a new run, seen
-        # at its first state, starts it afresh.
+        # Within the same run the law resumes warm (`Law.resume`: its plan and its observer's
+        # disturbance estimate kept); a new run, seen at its first state, starts it afresh.
         self.step.resume()
         self.last_answer = None
         if self.run is not None:
@@ -445,7 +451,8 @@ class ControllerNode(LifecycleNode):
         self.last_step, self.last_state = msg.step, x
         result = self.step(x, elapsed)
         self.compute_seconds.append(result.compute_seconds)
-        if self.intervals and result.compute_seconds > np.median(self.intervals):
+        if (self.intervals and not self.plant_waits
+                and result.compute_seconds > np.median(self.intervals)):
             self.counts['overruns'] += 1
         if result.outcome is Outcome.NON_FINITE_OUTPUT:
             self.non_finite_outputs += 1
@@ -468,6 +475,17 @@ class ControllerNode(LifecycleNode):
         self.publish_status(msg.step, stamp, int(result.outcome), result.compute_seconds,
                             tension, self.scale.u_to_tension(self.law.requested),
                             self.law.certificate)
+
+    def on_run_info(self, msg):
+        """A lockstep simulator waits for each command: the period between its states is the
+        loop's own, so no compute overruns it (a timed simulator or hardware keeps its
+        period whatever the controller does)."""
+        if msg.role == 'simulator':
+            try:
+                mode = (yaml.safe_load(msg.configuration) or {}).get('mode')
+            except (yaml.YAMLError, AttributeError):
+                mode = None
+            self.plant_waits = mode == 'lockstep'
 
     def refuse(self, msg, x, outcome):
         """A state the law must not see (not finite, or no TSR state): counted, no command;
@@ -610,7 +628,12 @@ class ControllerNode(LifecycleNode):
         if self.active and self.pub is not None:
             self.publish_stop(ControllerStatus.SAFE_TENSION)
             self.active = False
-            if self.pub.wait_for_all_acked(Duration(seconds=STOP_ACK_TIMEOUT)):
+            status = self.sim_status
+            if status is not None and status.status != SimStatus.RUNNING:
+                # A finished or halted run has no plant to hold (and its simulator may be
+                # gone already, its reader never to acknowledge).
+                self.get_logger().info(f'{why}: the stop sent (the run had ended)')
+            elif self.pub.wait_for_all_acked(Duration(seconds=STOP_ACK_TIMEOUT)):
                 self.get_logger().info(f'{why}: the stop sent and acknowledged')
             else:
                 self.get_logger().warning(f'{why}: the stop sent, not acknowledged within '
