@@ -3,7 +3,7 @@ does, as `sim_node` in `mode: timed` and a real plant do, and the law answers th
 when its compute (measured, wall clock) is done.
 
     python -m lab.timed_rehearsal [--slowdown 1 1.5 2] [--rate 100] [--steps 800]
-        [--out lab/results/timed_rehearsal]
+        [--set koopman_nmpc.theta_max=0.4 ...] [--out lab/results/timed_rehearsal]
 
 What the node does, step for step (`controller_node`, docs/supervisor.md): the law computes
 for the newest state k; meanwhile the plant flies the command it has; the new command applies
@@ -11,8 +11,9 @@ from the first sample after the compute ends; the states that arrived meanwhile 
 are dropped and the law told how many samples passed (`ControlStep(x, elapsed)`). The first
 command of a run starts its clock (`clock_start: command`). `--slowdown` multiplies every
 measured compute (2: a machine half as fast, or a loaded one), so what a slower host would do
-is seen on this one. Writes timed_rehearsal.md and .json into --out and the table into
-docs/supervisor.md between its markers.
+is seen on this one. `--set` gives the law's settings as deploy's does (the swing bound, say:
+each cell then also gives the run's largest |theta|). Writes timed_rehearsal.md and .json
+into --out and the table into docs/supervisor.md between its markers.
 """
 
 import argparse
@@ -27,6 +28,7 @@ from tsr_sim.units import Scale
 
 from lab.report import check_page, marker_name, publish
 from tsr_koopman_ctrl.control import make_controller, TensionLimiter
+from tsr_koopman_ctrl.control.registry import parse_assignments
 from tsr_koopman_ctrl.control.step import ControlStep
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
 
@@ -96,11 +98,12 @@ def fly(start, slowdown, rate_hz, steps, law):
             'swing': figures['swing'], 'switches': law.switches, **loop}
 
 
-def cell(row):
+def cell(row, swing=False):
     if row['lost']:
         return 'lost'
     ratio = 'not settled' if row['ratio'] is None else f"{row['ratio']:.3f}x"
-    return (f"{ratio}, {row['dropped']} dropped, longest {row['longest']:.1f}, "
+    return (f"{ratio}" + (f", swing {row['swing']:.3f}" if swing else '')
+            + f", {row['dropped']} dropped, longest {row['longest']:.1f}, "
             f"{row['switches']} switches")
 
 
@@ -110,6 +113,9 @@ def parser():
     p.add_argument('--rate', type=float, default=100.0, help='plant samples a second')
     p.add_argument('--steps', type=int, default=800)
     p.add_argument('--law', default='koopman_nmpc')
+    p.add_argument('--set', action='append', default=[], metavar='SECTION.SETTING=VALUE',
+                   help="the law's settings and its sections' (observer, supervisor, "
+                   'safety_filter), as deploy --set')
     p.add_argument('--out', default=os.path.join('lab', 'results', 'timed_rehearsal'))
     p.add_argument('--page', default=PAGE)
     return p
@@ -123,21 +129,30 @@ def main(argv=None):
         except ValueError as error:
             print(f'timed_rehearsal: {error}', file=sys.stderr)
             return 2
-    law = make_controller(args.law)
+    try:
+        sections = parse_assignments(args.set)
+    except ValueError as error:
+        print(f'timed_rehearsal: {error}', file=sys.stderr)
+        return 2
+    law = make_controller(args.law, observer=sections.get('observer'),
+                          supervisor=sections.get('supervisor'),
+                          safety=sections.get('safety_filter'), **sections.get(args.law, {}))
     law.warm_up()
     rows = []
     for slowdown in args.slowdown:
         for start in STARTS:
             rows.append(fly(start, slowdown, args.rate, args.steps, law))
-            print(f'x{slowdown} {start}: {cell(rows[-1])}', flush=True)
+            print(f'x{slowdown} {start}: {cell(rows[-1], True)}', flush=True)
     header = ' | '.join(f'compute x{s:g}' for s in args.slowdown)
-    lines = [f'`{args.law}` (the default, supervised) at {args.rate:g} Hz, {args.steps} '
+    settings = f" with {', '.join(args.set)}" if args.set else ' (the default)'
+    lines = [f'`{args.law}`{settings} at {args.rate:g} Hz, {args.steps} '
              'samples a run; each cell: settle time over the minimum time at the swing, '
-             'states dropped, the longest step after the first in periods, supervisor '
+             + ('the largest |theta| [rad], ' if args.set else '')
+             + 'states dropped, the longest step after the first in periods, supervisor '
              'switches:', '', f'| start | {header} |',
              '|---|' + '---|' * len(args.slowdown)]
     for start in STARTS:
-        cells = [cell(r) for s in args.slowdown for r in rows
+        cells = [cell(r, bool(args.set)) for s in args.slowdown for r in rows
                  if r['start'] == list(start) and r['slowdown'] == s]
         lines.append(f'| {list(start)} | ' + ' | '.join(cells) + ' |')
     text = '\n'.join(lines) + '\n'

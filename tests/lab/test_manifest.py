@@ -172,6 +172,7 @@ def test_the_pages_generated_by_their_studies(monkeypatch):
     generated = {entry['name'] for entry in ENTRIES if page_option(entry, monkeypatch)}
     assert generated == {'main_job', 'comparison', 'comparison_swing0.4', 'robustness',
                          'assurance', 'assurance_monitor', 'fallback_region', 'timed_rehearsal',
+                         'timed_rehearsal_swing0.4',
                          'prediction', 'prediction_main_job', 'prediction_momentum',
                          'nmpc_nominal', 'nmpc_swing0.4', 'nmpc_robustness',
                          'data_loop_actuator_weak', 'data_loop_actuator_strong',
