@@ -113,6 +113,30 @@ def test_the_supervisor_alone_loses_this_start_and_the_filter_holds_it():
     assert np.abs(states[:, dynamics.THETA]).max() <= 0.405
 
 
+#: Two cases of the safety campaign (lab/campaigns/safety_filter.yaml, runs 203 and 198) where
+#: the verified law alone held 0.405 rad and the filtered law lost the bound (203 tumbled): the
+#: learned law's first command refused, the supervisor's fallback started cold the step after.
+HANDED_OVER_CASES = [
+    ((0.05004177330892698, 0.13956389440575803, -0.9695085448206211, 0.4873240405833522),
+     {'actuator_gain': 1.0014224065633879, 'actuator_lag': 0.016715126951080097,
+      'sensor_noise_std': [0.00037133977864959255] * 4, 'seed': 62804904}),
+    ((-0.11496376509856518, 0.053619661030818666, -0.9419424290994652, 0.21738494135434588),
+     {'actuator_gain': 1.1296964401354517, 'actuator_lag': 0.026203386246943947,
+      'sensor_noise_std': [0.00029085606403320575] * 4, 'seed': 854359812})]
+
+
+@pytest.mark.parametrize('start, plant', HANDED_OVER_CASES, ids=['run203', 'run198'])
+def test_after_a_hand_over_the_fallback_flies_on_from_the_verified_plan(start, plant):
+    """The plan the filter's verified law flew at the hand-over is the fallback's start the
+    next step (`Supervisor.start_from`): from these cases the filtered law then holds the
+    bound as the verified law alone does (cold, the fallback's poorer first plan swung the
+    robot to 0.43 and 0.61 rad)."""
+    law = make_controller('koopman_nmpc', theta_max=0.4)
+    states, _ = closed_loop(law, start, 300, plant=plant)
+    assert len(states) == 301 and law.law.reasons['certificate'] >= 1
+    assert np.abs(states[:, dynamics.THETA]).max() <= 0.405
+
+
 @pytest.mark.parametrize('start, theta_max', [
     ((0.0, 0.0, -0.9, 0.3), 0.4), ((0.0, 0.0, -0.95, 1.0), 0.4), ((0.05, 0.1, -0.8, 0.8), 0.4),
     (dynamics.PAPER_INITIAL_STATE, 3.2), ((0.0, 0.0, -0.9, 0.3), 3.2)])

@@ -196,6 +196,7 @@ class SafetyFilter(Wrapper):
             verified.reset()
         self.backup_plan = None       # felt tensions per sample from the next state (NaN: hold)
         self.planned_at = {}          # the step each verified law last planned at
+        self.flew_verified = False    # the last rescue flew the verified law's plan from x
         self.corrections = 0
         self.correction_sum = 0.0
         self.steps = 0
@@ -276,6 +277,10 @@ class SafetyFilter(Wrapper):
             command = min(max(handed, 0.0), self.u_max)
         else:
             command = self.rescue(x, felt_range, start)
+            if self.flew_verified:
+                # The fallback flies from the next step: it starts from the plan that flew
+                # this one, not cold (one sample behind, which its first RTI step absorbs).
+                self.law.start_from(self.verified.guess())
         self.corrections += 1
         if math.isfinite(asked):
             self.correction_sum += abs(command - asked)
@@ -313,10 +318,12 @@ class SafetyFilter(Wrapper):
         plan = None
         if self.verified is not None and (kept is None or not self.late_at(start)):
             plan = self.verified_plan(self.verified, x, None, felt_range)
+        self.flew_verified = plan is not None
         if plan is not None and self.check(x, plan, felt_range):
             self.certificate, self.backup_plan, felt = REPLANNED, plan[1:], plan[0]
         elif kept is not None and self.check(x, kept, felt_range, kept=True):
             self.certificate, self.backup_plan, felt = KEPT, kept[1:], kept[0]
+            self.flew_verified = False
         else:
             self.certificate = UNCERTIFIED if kept is None else LAPSED
             self.backup_plan = None

@@ -279,6 +279,12 @@ class Supervisor(Law):
     def guess(self):
         return (self.learned if self.flying == LEARNED else self.fallback).guess()
 
+    def start_from(self, guess):
+        """Offered a plan for the law that flies next: after a hand-over the safety filter
+        offers its verified law's (the fallback, not having planned, would start cold: a
+        poorer plan that lost the robot where the verified law alone held it)."""
+        (self.learned if self.flying == LEARNED else self.fallback).start_from(guess)
+
     def swing_bound(self):
         return self.learned.swing_bound()
 
