@@ -80,9 +80,12 @@ class Law:
         self.fallbacks = 0
 
     def resume(self):
-        """After a pause in the same run (the controller deactivated and activated again):
-        forget the plan, keep what was learnt about the plant (a disturbance estimate), so
-        that the first command after it is where the plant is. Stateless laws: `reset`."""
+        """After a pause in the same run (the controller deactivated and activated again;
+        the plant may have been held by its reel hold meanwhile, over samples the law does not
+        see): a resume is not a reset. A law with a plan keeps it as the next step's warm
+        start (unless the state measured then shows the plant moved off it), an observer its
+        disturbance estimate, a monitor its verdict. Laws whose only memory is of the last
+        samples: `reset` (the default), they start where the plant is."""
         self.reset()
 
     def warm_up(self):

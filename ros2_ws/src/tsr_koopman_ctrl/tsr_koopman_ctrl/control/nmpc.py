@@ -24,9 +24,11 @@ One RTI step (Diehl, Bock, Schloeder 2005), multiple shooting:
 2. simulate: every interval from its node under its tension, all in one batch (`map.interval`,
    ~10 batched map calls on the default grid instead of 360 sequential ones; on the physics
    map one call of a compiled function), with the
-   sensitivities A_j = d end_j / d p_j, b_j = d end_j / d u_j; the defects end_j - p_{j+1}
-   stay in the QP as affine terms, so no single-shooting rollout (whose open-loop-unstable
-   length drifts off) is ever flown;
+   sensitivities A_j = d end_j / d p_j, b_j = d end_j / d u_j (on the learned map by default
+   the one-step Jacobian at the interval's start, held; chained exactly on a step whose
+   defects pass HELD_DEFECT_LIMIT); the defects end_j - p_{j+1} stay in the QP as affine
+   terms, so no single-shooting rollout (whose open-loop-unstable length drifts off) is ever
+   flown;
 3. condense: the nodes are affine in the tension changes du, p = p_bar + G du
    (p_bar_{j+1} = end_j + A_j (p_bar_j - p_j), G_{j+1} = A_j G_j + b_j e_j'; on the physics
    map one banded triangular solve, `condense_banded`);
@@ -51,7 +53,8 @@ the plant waits for the first command), a failed step's on `recovery` (on the le
 exact equations by default, ~10 ms: inside a running loop a cold start must fit a period or
 two). A law without a plan that is offered one made for the same state by another law on the
 same grid (`start_from`: the supervisor's fallback, when the learned law takes up again) starts
-with one RTI step from its nodes instead.
+with one RTI step from its nodes instead; a law resumed after a pause in the run (`resume`)
+with one RTI step from its own plan, unless the plant moved off it meanwhile.
 """
 
 import dataclasses
@@ -80,6 +83,21 @@ PLAN_MIN_LENGTH = 0.005
 #: whose rollout leaves the domain before the step is refused.
 COLD_ITERATIONS = 5
 BACKTRACKS = 4
+#: The largest defect (any component) of the nodes an RTI step starts from that the held
+#: start sensitivities (`sensitivities: 'start'`) linearise: a larger one shows that they
+#: predicted the last QP step badly (a large move of the plan on a short tether), and the
+#: step chains them exactly instead. Held throughout, the defects of the nominal run from the
+#: paper's start grow to 0.4 in theta' until the condensed plan reels the tether in past
+#: nothing, 1 / l scales the QP's Hessian to 1e14 and DAQP cycles (a fallback); chained on
+#: the three steps past the limit, no QP fails. Normal defects are ~0.002.
+HELD_DEFECT_LIMIT = 0.1
+#: A plan resumed after a pause (`Nmpc.resume`) is the next step's warm start while it
+#: predicted the state measured then within this, any component (a model's one-step miss
+#: within a run stays under ~0.07, its 99th percentile ~0.01); past it the plant moved off the
+#: plan while the law was paused (the reel hold stopped the tether mid-deployment), and the
+#: step is a cold start, as a run's first: from such a stale plan the learned law fell back in
+#: 7 of 10 stops tried (docs/supervisor.md), from a cold start in none.
+RESUME_MISS_LIMIT = 0.1
 #: DAQP's soft-constraint weight (a violation s costs s^2 / (2 SOFT_RHO)) and the QP's
 #: regularisation of du (a strictly convex QP whatever r).
 SOFT_RHO = 1e-6
@@ -214,6 +232,10 @@ class Nmpc(Law):
         self.age = 1
         #: A plan offered for the next step (`start_from`; None: none).
         self.offered = None
+        #: The next step is the first after a pause (`resume`).
+        self.resumed = False
+        #: RTI steps whose sensitivities were chained exactly (HELD_DEFECT_LIMIT).
+        self.exact_steps = 0
         #: The tensions the plans may take: [0, u_max], or the felt range the offset-free
         #: wrapper sets ([phi(0), phi(u_max)]: what the actuator can make the plant feel).
         self.felt_range = (0.0, self.u_max)
@@ -241,6 +263,7 @@ class Nmpc(Law):
     def compute(self, x):
         x = planar_state(x)
         offered, self.offered = self.offered, None
+        resumed, self.resumed = self.resumed, False
         if self.plan is None:
             self.age = 1
             return self.fly(self.start(x, offered))
@@ -252,7 +275,11 @@ class Nmpc(Law):
         felt = np.append(self.felt_plan, self.felt_plan[-1])
         nodes = (self.map.step(self.nodes, felt) if age == 1 else
                  self.map.advance(self.nodes, felt, np.full(len(felt), age)))
-        self.missed = x - nodes[0]       # nodes[0]: the last state advanced under what flew
+        # nodes[0]: the last state advanced under what flew (after a pause, not what flew)
+        self.missed = None if resumed else x - nodes[0]
+        if resumed and not np.abs(x - nodes[0]).max() <= RESUME_MISS_LIMIT:
+            self.flown = None       # (the hold flew last, a tension the law does not know)
+            return self.fly(self.cold_start(x))
         nodes[0] = x
         step = self.iterate(nodes, shifted) if np.all(np.isfinite(nodes)) else None
         if step is None:
@@ -328,10 +355,14 @@ class Nmpc(Law):
             self.plan[0] = self.felt_plan[0] = self.flown
 
     def resume(self):
-        """A cold start at the next step, from the plant as it is then."""
-        fallbacks = self.fallbacks
-        self.reset()
-        self.fallbacks = fallbacks
+        """The plan stays the next step's warm start: that step shifts it one sample and, if
+        the state measured then lies where the plan predicted it (RESUME_MISS_LIMIT: no sample
+        missed, or a plant held at rest), makes one RTI step from it as every step does, so
+        the first command after the pause continues the plan flown before it and costs what
+        the others do; a plant that moved off the plan meanwhile (the reel hold stopped it
+        mid-deployment) gets a cold start, as at a run's first state. Either way its miss is
+        the pause's, not the model's: no `residual` that step."""
+        self.offered, self.age, self.resumed = None, 1, True
 
     def observe(self, x):
         """Not flown this step: the plan is dropped (the next step starts again, `start`)."""
@@ -437,10 +468,15 @@ class Nmpc(Law):
 
     def iterate(self, nodes, plan):
         """One RTI step from nodes (N + 1, n) (nodes[0] the measured state) and plan (N,):
-        the new (plan, nodes), or None if the QP fails or an interval leaves the domain."""
+        the new (plan, nodes), or None if the QP fails or an interval leaves the domain. Held
+        sensitivities whose nodes' defects pass HELD_DEFECT_LIMIT are chained exactly."""
         with np.errstate(all='ignore'):
             end, a, b = self.map.interval(nodes[:-1], self.felt(plan), self.counts,
                                           exact=self.exact_sensitivities)
+            if (not self.exact_sensitivities and in_domain(end)
+                    and np.abs(end - nodes[1:]).max() > HELD_DEFECT_LIMIT):
+                end, a, b = self.map.interval(nodes[:-1], self.felt(plan), self.counts)
+                self.exact_steps += 1
         if not (in_domain(end) and np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
             return None
         predicted, gains = self.condense(nodes, end, a, b)
@@ -646,11 +682,11 @@ class KoopmanNmpcSettings(NmpcSettings):
                                    "each costs a rollout of the learned map (~20 ms); the steps "
                                    "that follow refine the plan anyway", low=1, high=20)
     cold_guide: str = setting('model', "what the first step's cold start (a run's first "
-                              "state, after a pause) rolls its trial plans out on: 'model' (the "
-                              "learned map, sample by sample: 25-450 ms, paid while the plant "
-                              "waits for the first command) or 'physics' (the nominal equations, "
-                              "one compiled-graph call: ~10 ms, and another law: the plans it "
-                              "starts from differ); the QP steps use the learned map either way",
+                              "state) rolls its trial plans out on: 'model' (the learned map, "
+                              "sample by sample: 25-450 ms, paid while the plant waits for the "
+                              "first command) or 'physics' (the nominal equations, one "
+                              "compiled-graph call: ~10 ms, and another law: the plans it starts "
+                              "from differ); the QP steps use the learned map either way",
                               choices=('model', 'physics'))
     recovery_guide: str = setting('physics', "what a failed step's cold start (a failed QP, "
                                   "a node off the domain) rolls its trial plans out on, as "

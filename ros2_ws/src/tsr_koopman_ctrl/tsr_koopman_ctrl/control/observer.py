@@ -33,6 +33,9 @@ from tsr_sim import dynamics
 PLANAR = dynamics.PLANAR_DIM
 #: The estimate's tether length is kept above this: the equations divide by l.
 MIN_LENGTH = 1e-3
+#: The first measurement after a pause continues the filter while its normalised innovation
+#: squared stays below this (the chi-square 0.999 quantile for the 4 components measured).
+RESUME_GATE = 18.47
 
 
 def physics_predictor(h=dynamics.PAPER_STEP, substeps=10):
@@ -92,6 +95,19 @@ class DisturbanceObserver:
         #: y - the one-step prediction of the planar state (None until a prediction was made)
         self.innovation = None
         self.actuator_pending = False   # a_hat is set from the first command it sees
+        #: The next update is the first after a pause (`resume`).
+        self.resumed = False
+
+    def resume(self):
+        """After a pause (the controller inactive; the plant may have flown its reel hold, a
+        tension the filter does not know, over samples it does not see): the next update
+        corrects the state if its measurement lies where the filter predicts it (no sample
+        missed, or a plant at rest), judged by its innovation against the predicted
+        covariance (RESUME_GATE), else starts the state again from it. Either way the
+        disturbance estimate stands that update (the innovation may be the hold's, no sign of
+        the actuator's), its variance too: restarted at its initial variance, the estimate
+        would be learnt again and the command move with it."""
+        self.resumed = self.estimate is not None
 
     @property
     def state(self):
@@ -115,20 +131,35 @@ class DisturbanceObserver:
         """Fold in the measurement y taken after `previous_command` was held for one sample
         (None at the first sample); return the filtered planar state."""
         y = np.asarray(y, dtype=float)[:PLANAR]
+        resumed, self.resumed = self.resumed, False
         if self.estimate is not None and previous_command is not None:
             predicted, jacobian = self.linearised_step(self.estimate, float(previous_command))
-            if np.all(np.isfinite(predicted)) and np.all(np.isfinite(jacobian)):
+            if (np.all(np.isfinite(predicted)) and np.all(np.isfinite(jacobian))
+                    and not (resumed and self.surprised(y, predicted, jacobian))):
                 self.innovation = y - predicted[:PLANAR]
-                return self.correct(y, predicted, jacobian)
-        # first sample, or the estimate left the model's domain (a noisy l near 0): restart
-        # from the measurement, keeping the disturbance learnt so far; the actuator starts on
-        # the first command, as the simulated plant's does
+                return self.correct(y, predicted, jacobian, disturbance=not resumed)
+        # first sample, after a pause the filter did not predict (`resume`), or the estimate
+        # left the model's domain (a noisy l near 0): restart from the measurement, keeping the
+        # disturbance learnt so far; the actuator starts on the first command, as the
+        # simulated plant's does
         self.actuator_pending = self.lag > 0.0
         self.innovation = None
         start = np.r_[y, [np.nan] * (self.size - PLANAR - 1), self.disturbance]
         start[dynamics.LENGTH_OFFSET] = max(start[dynamics.LENGTH_OFFSET], MIN_LENGTH - 1.0)
-        self.estimate, self.covariance = start, self.initial_covariance.copy()
+        covariance = self.initial_covariance.copy()
+        if resumed:
+            covariance[-1, -1] = self.covariance[-1, -1]
+        self.estimate, self.covariance = start, covariance
         return self.state.copy()
+
+    def surprised(self, y, predicted, jacobian):
+        """True if y lies outside the filter's prediction: its normalised innovation squared
+        against the predicted covariance past RESUME_GATE."""
+        covariance = (jacobian[:PLANAR] @ self.covariance @ jacobian[:PLANAR].T
+                      + self.process_covariance[:PLANAR, :PLANAR]
+                      + self.sensor_variance * np.eye(PLANAR))
+        innovation = y - predicted[:PLANAR]
+        return not innovation @ np.linalg.solve(covariance, innovation) <= RESUME_GATE
 
     def coast(self, command, samples):
         """Predict `samples` samples ahead under `command` held, with no measurement (a
@@ -142,12 +173,16 @@ class DisturbanceObserver:
             self.covariance = jacobian @ self.covariance @ jacobian.T + self.process_covariance
             self.estimate = predicted
 
-    def correct(self, y, predicted, jacobian):
-        """The Kalman measurement update after the prediction `predicted`, Jacobian F_s."""
+    def correct(self, y, predicted, jacobian, disturbance=True):
+        """The Kalman measurement update after the prediction `predicted`, Jacobian F_s; the
+        disturbance estimate left as predicted unless `disturbance` (a gain of 0 for it: the
+        Joseph form keeps the covariance right for any gain)."""
         covariance = jacobian @ self.covariance @ jacobian.T + self.process_covariance
         size = self.size
         innovation_cov = covariance[:PLANAR, :PLANAR] + self.sensor_variance * np.eye(PLANAR)
         gain = np.linalg.solve(innovation_cov, covariance[:PLANAR]).T   # P H' S^-1
+        if not disturbance:
+            gain[-1] = 0.0
         estimate = predicted + gain @ (y - predicted[:PLANAR])
         correction = np.eye(size)
         correction[:, :PLANAR] -= gain

@@ -116,10 +116,11 @@ class OffsetFree(Wrapper):
         self.law.elapsed(steps)
 
     def resume(self):
-        """The law forgets its plan; the observer keeps its disturbance estimate and starts
-        again from the next measurement (the plant moved while no command was flown)."""
+        """The law resumes (`Law.resume`); the observer keeps its disturbance estimate and
+        goes on from the last command sent, or starts again from the next measurement if that
+        lies where it did not predict (`DisturbanceObserver.resume`)."""
         self.law.resume()
-        self.last_command = None
+        self.observer.resume()
 
     def observe(self, x):
         """The observer keeps up with the measurement; the law drops its plan."""

@@ -211,11 +211,12 @@ class SafetyFilter(Wrapper):
         return () if self.verified is None else (self.verified, self.probe)
 
     def resume(self):
+        """The filtered law and the verified laws resume (`Law.resume`), the verified laws
+        warm from their plans as on consecutive steps; the kept certificate stays (it flies
+        only once checked again from the state measured, as every step)."""
         self.law.resume()
         for verified in self.verified_laws():
             verified.resume()
-        self.backup_plan = None
-        self.planned_at = {}
 
     def warm_up(self):
         self.law.warm_up()

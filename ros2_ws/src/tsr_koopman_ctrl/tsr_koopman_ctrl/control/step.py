@@ -51,7 +51,8 @@ class ControlStep:
             self.excitation.reset()
 
     def resume(self):
-        """After a pause in the same run: the law resumes (`Law.resume`)."""
+        """After a pause in the same run: the law resumes (`Law.resume`: warm, its
+        disturbance estimate kept); the excitation goes on where it was."""
         self.law.resume()
 
     @staticmethod

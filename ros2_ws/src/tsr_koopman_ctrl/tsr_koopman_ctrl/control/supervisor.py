@@ -212,8 +212,9 @@ class Supervisor(Law):
         self.fallback.elapsed(steps)
 
     def resume(self):
-        """Both laws forget their plans and keep what their observers learnt; the monitor's
-        verdict stands (a distrusted learned law still has to earn the plant back)."""
+        """Both laws resume (`Law.resume`: plans kept as warm starts, disturbance estimates
+        kept); the monitor's state stands: the law that flew flies on, a distrusted learned
+        law still has to earn the plant back, its faults, rest and probation count on."""
         self.learned.resume()
         self.fallback.resume()
 

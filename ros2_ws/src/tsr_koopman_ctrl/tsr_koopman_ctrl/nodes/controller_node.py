@@ -8,9 +8,11 @@ Lifecycle (rclpy.lifecycle, as ros2_control and nav2 manage their nodes):
               or model fails the transition with one line; publishes the RunInfo the bag keeps
               and creates the command writer (a timed simulator waiting for a commander starts
               its clock once the law is ready)
-  activate    starts commanding; within the same run the law resumes (`Law.resume`: its plan
-              is dropped, its observer keeps the disturbance it learnt), so a re-activation is
-              bumpless on a plant unlike the model; a new run starts afresh
+  activate    starts commanding; within the same run the law resumes (`Law.resume`, no
+              reset): its observer keeps the disturbance it learnt and the NMPC re-plans warm
+              from its last plan while the plant is where that plan predicted (a re-activation
+              with no sample missed flies what the uninterrupted run flies); a plant the hold
+              moved off the plan gets a cold start; a new run starts afresh
   deactivate  stops commanding: the node sends the stop (`hold` set, step NO_STEP,
               `safe_tension` for a plant without a hold) once and then nothing until it is
               activated again; a timed simulator or hardware engages its reel hold, which holds
