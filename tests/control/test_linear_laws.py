@@ -118,3 +118,24 @@ def test_the_cross_terms_make_the_state_weight_the_factor_product():
     assert not np.allclose(law.gain, LinearisedLqr(q=q, r=0.3).gain)
     with pytest.raises(ValueError, match='q_cross needs 6 numbers'):
         LinearisedLqr(q_cross=(1.0, 2.0))
+
+
+def test_the_fractional_derivative_keeps_its_time_base_over_dropped_samples():
+    """A real-time loop drops states (`Law.elapsed`): the Grunwald-Letnikov sum must not read
+    the samples it saw as consecutive. On a ramp, interpolating the dropped ones is exact."""
+    h = dynamics.PAPER_STEP
+    every, dropping = (FractionalOrderPd(alpha=0.6, gains=[0, 1.0, 0, 0], memory=300)
+                       for _ in range(2))
+    for k in range(118):
+        x = [0.002 * k, 0.0, 0.0, 0.0]
+        u_every = every.compute(x)
+        if k % 3 == 0:       # the loop answers every third state
+            if k:
+                dropping.elapsed(3)
+            u_dropping = dropping.compute(x)
+    assert u_dropping == pytest.approx(u_every, abs=1e-9)
+    # Read as consecutive, the same three-times-coarser samples give another derivative.
+    naive = FractionalOrderPd(alpha=0.6, gains=[0, 1.0, 0, 0], memory=300)
+    for k in range(0, 118, 3):
+        u_naive = naive.compute([0.002 * k, 0.0, 0.0, 0.0])
+    assert abs(u_naive - u_every) > 0.01 / h ** 0.4

@@ -30,9 +30,10 @@ class FractionalOrderPd(Law):
     """u = 3 - (k_theta theta + k_l (l - 1)) - D^alpha (d_theta theta + d_l (l - 1)).
 
     D^alpha by Grunwald-Letnikov over the last `memory` samples of period h (history before the
-    first sample taken equal to it). With alpha = 1 this is the linearised LQR law with the rates
-    replaced by differenced positions; the untuned gains are that law's (Q = I, R = 1) and
-    alpha = 0.9 adds the fractional operator's memory.
+    first sample taken equal to it; samples a real-time loop dropped, `elapsed`, interpolated
+    between the ones on either side, so that the sum keeps its time base). With alpha = 1 this
+    is the linearised LQR law with the rates replaced by differenced positions; the untuned
+    gains are that law's (Q = I, R = 1) and alpha = 0.9 adds the fractional operator's memory.
     """
 
     name = 'fractional_pd'
@@ -51,14 +52,25 @@ class FractionalOrderPd(Law):
     def reset(self):
         super().reset()
         self.history = None
+        self.missed = 0
+
+    def elapsed(self, steps):
+        # The history is a sampled signal: the samples between are filled in at the next
+        # compute, once the sample after them is known.
+        if self.history is not None:
+            self.missed += int(steps) - 1
 
     def compute(self, x):
         x = planar_state(x)
         signal = self.d_theta * x[dynamics.THETA] + self.d_l * x[dynamics.LENGTH_OFFSET]
         if self.history is None:
             self.history = np.full(len(self.weights), signal)
-        self.history = np.roll(self.history, 1)
-        self.history[0] = signal
+        last, gap = self.history[0], self.missed + 1
+        self.missed = 0
+        shift = min(gap, len(self.history))
+        self.history = np.roll(self.history, shift)
+        # Newest first: signal, then the dropped samples back towards the last one seen.
+        self.history[:shift] = (signal + (last - signal) * np.arange(gap) / gap)[:shift]
         derivative = float(self.weights @ self.history)
         proportional = self.k_theta * x[dynamics.THETA] + self.k_l * x[dynamics.LENGTH_OFFSET]
         return dynamics.EQUILIBRIUM_TENSION - proportional - derivative
