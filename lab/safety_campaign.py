@@ -63,7 +63,12 @@ def figures(rows, limit=None, reference='physics'):
     lost = sorted(int(run) for run in filtered.index[ok_r & ~ok_f])
     both = ok_f & ok_r & filtered['settle_tau'].notna() & other['settle_tau'].notna()
     ratio = filtered['settle_tau'][both] / other['settle_tau'][both]
+    lost_by = {label: sorted(int(run) for run in group.index[ok_r & ~held(group, limit)])
+               for label, group in laws.items() if label not in ('filtered', reference)}
+    worst = ratio.sort_values(ascending=False)
     result = {'cases': len(filtered), 'reference': reference, 'lost_where_reference_holds': lost,
+              'lost_by': lost_by, 'reference_held': int(ok_r.sum()),
+              'settle_ratio_over_1.05': [int(run) for run in worst.index[worst > 1.05]],
               'held': {label: int(held(group, limit).sum()) for label, group in laws.items()},
               'held_interval': {label: clopper_pearson(int(held(group, limit).sum()),
                                                        len(group))
@@ -90,8 +95,16 @@ def table(part, result, steps):
     ratio = ('-' if result['settle_ratio_median'] is None else
              f"median {result['settle_ratio_median']:.3f}, largest "
              f"{result['settle_ratio_max']:.3f} ({result['both_settled']} cases)")
-    lines += ['', f"- lost by the filtered law where `{result['reference']}` holds: "
-              f"{len(lost)}{' (runs ' + ', '.join(map(str, lost)) + ')' if lost else ''}",
+
+    def runs(numbers):
+        listed = f" (runs {', '.join(map(str, numbers))})" if numbers else ''
+        return f'{len(numbers)}{listed}'
+    over = result['settle_ratio_over_1.05']
+    lines += ['', f"- lost by the filtered law where `{result['reference']}` holds "
+              f"({result['reference_held']} cases): {runs(lost)}"]
+    lines += [f"- lost by `{label}` there: {len(numbers)}"
+              for label, numbers in result['lost_by'].items()]
+    lines += [f"- settle time past 1.05x `{result['reference']}`'s: {runs(over)}",
               f"- settle time, filtered / `{result['reference']}` where both settle: {ratio}",
               f"- steps corrected by the filter per run: median {result['corrections_median']:.0f}"
               f" of {steps}, largest {result['corrections_max']}"]
@@ -108,8 +121,9 @@ def main(argv=None):
     nominal = load_spec(SPECS['nominal'])
     results = {'dispersed': figures(rows['dispersed'], dispersed.swing_limit),
                'nominal': figures(rows['nominal'], None, reference='supervised')}
-    command = ('python -m lab.safety_campaign --out lab/results/safety_campaign '
-               '--page docs/supervisor.md')
+    command = ' '.join(['python -m lab.safety_campaign']
+                       + ([f'--runs {args.runs}'] if args.runs else [])
+                       + [f'--out {args.out}'] + ([f'--page {args.page}'] if args.page else []))
     text = '\n\n'.join([
         f'Measured by `{command}` ({stamp()}; the rows: `<out>/<part>/runs.parquet`, the '
         'campaigns\' own reports beside them):',

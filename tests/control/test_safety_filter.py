@@ -137,6 +137,35 @@ def test_after_a_hand_over_the_fallback_flies_on_from_the_verified_plan(start, p
     assert np.abs(states[:, dynamics.THETA]).max() <= 0.405
 
 
+#: The four losses of the 1000-case campaign (lab/campaigns/safety_filter.yaml --runs 1000,
+#: docs/supervisor.md): the verified law alone holds 0.405 rad, the filtered law does not.
+#: Known defects, strict so that a fix shows. 861: the learned law's first tension (0) is
+#: certified while the observer knows nothing yet of the weak actuator (gain 0.89), and the
+#: verified law itself loses the robot after that one command. 880, 567, 960: the supervisor's
+#: fallback flies uncertified (the filter passes it) and its plans drift off the verified law's;
+#: a warm start moved on a sample holds these three but loses run 198, so the fix is to
+#: certify the fallback's commands too, not its warm start.
+LOST_AT_SCALE = [pytest.param(start, dict(plant, sensor_noise_std=[noise] * 4), id=f'run{run}',
+                              marks=pytest.mark.xfail(strict=True, reason='known loss'))
+                 for run, start, noise, plant in [
+    (861, (-0.12613235252290866, -0.10644026751707529, -0.973264017265616, 0.43950627521684293),
+     0.0003541797281847673, {'actuator_gain': 0.892626314801575,
+                             'actuator_lag': 0.008978568302191948, 'seed': 362595453}),
+    (880, (-0.08620393900056895, -0.01834680888807122, -0.9624854082603103, 0.4896030652371385),
+     0.0009328342249978582, {'actuator_gain': 0.8265490207927543,
+                             'actuator_lag': 0.024909000536804123, 'seed': 1872901652})]]
+
+
+@pytest.mark.parametrize('start, plant', LOST_AT_SCALE)
+def test_the_filtered_law_holds_where_the_verified_law_alone_does(start, plant):
+    verified = make_controller('physics_nmpc', theta_max=0.4)
+    states, _ = closed_loop(verified, start, 300, plant=plant)
+    assert len(states) == 301 and np.abs(states[:, dynamics.THETA]).max() <= 0.405
+    filtered = make_controller('koopman_nmpc', theta_max=0.4)
+    states, _ = closed_loop(filtered, start, 300, plant=plant)
+    assert len(states) == 301 and np.abs(states[:, dynamics.THETA]).max() <= 0.405
+
+
 @pytest.mark.parametrize('start, theta_max', [
     ((0.0, 0.0, -0.9, 0.3), 0.4), ((0.0, 0.0, -0.95, 1.0), 0.4), ((0.05, 0.1, -0.8, 0.8), 0.4),
     (dynamics.PAPER_INITIAL_STATE, 3.2), ((0.0, 0.0, -0.9, 0.3), 3.2)])
