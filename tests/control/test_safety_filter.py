@@ -137,7 +137,7 @@ def test_after_a_hand_over_the_fallback_flies_on_from_the_verified_plan(start, p
     assert np.abs(states[:, dynamics.THETA]).max() <= 0.405
 
 
-#: The four losses of the 1000-case campaign (lab/campaigns/safety_filter.yaml --runs 1000,
+#: Two of the four losses of the 1000-case campaign (lab/campaigns/safety_filter.yaml --runs 1000,
 #: docs/supervisor.md): the verified law alone holds 0.405 rad, the filtered law does not.
 #: Known defects, strict so that a fix shows. 861: the learned law's first tension (0) is
 #: certified while the observer knows nothing yet of the weak actuator (gain 0.89), and the
@@ -145,8 +145,7 @@ def test_after_a_hand_over_the_fallback_flies_on_from_the_verified_plan(start, p
 #: fallback flies uncertified (the filter passes it) and its plans drift off the verified law's;
 #: a warm start moved on a sample holds these three but loses run 198, so the fix is to
 #: certify the fallback's commands too, not its warm start.
-LOST_AT_SCALE = [pytest.param(start, dict(plant, sensor_noise_std=[noise] * 4), id=f'run{run}',
-                              marks=pytest.mark.xfail(strict=True, reason='known loss'))
+LOST_AT_SCALE = [pytest.param(start, dict(plant, sensor_noise_std=[noise] * 4), id=f'run{run}')
                  for run, start, noise, plant in [
     (861, (-0.12613235252290866, -0.10644026751707529, -0.973264017265616, 0.43950627521684293),
      0.0003541797281847673, {'actuator_gain': 0.892626314801575,
@@ -157,10 +156,16 @@ LOST_AT_SCALE = [pytest.param(start, dict(plant, sensor_noise_std=[noise] * 4), 
 
 
 @pytest.mark.parametrize('start, plant', LOST_AT_SCALE)
-def test_the_filtered_law_holds_where_the_verified_law_alone_does(start, plant):
+def test_the_verified_law_alone_holds_the_cases_lost_at_scale(start, plant):
     verified = make_controller('physics_nmpc', theta_max=0.4)
     states, _ = closed_loop(verified, start, 300, plant=plant)
     assert len(states) == 301 and np.abs(states[:, dynamics.THETA]).max() <= 0.405
+
+
+# (Apart from the verified law's test above, so that the expected failure hides no other.)
+@pytest.mark.xfail(strict=True, reason='known loss')
+@pytest.mark.parametrize('start, plant', LOST_AT_SCALE)
+def test_the_filtered_law_holds_where_the_verified_law_alone_does(start, plant):
     filtered = make_controller('koopman_nmpc', theta_max=0.4)
     states, _ = closed_loop(filtered, start, 300, plant=plant)
     assert len(states) == 301 and np.abs(states[:, dynamics.THETA]).max() <= 0.405
