@@ -19,6 +19,7 @@ into --out and the table into docs/supervisor.md between its markers.
 import argparse
 import math
 import os
+import shlex
 import sys
 
 import numpy as np
@@ -26,7 +27,7 @@ from tsr_sim import dynamics
 from tsr_sim.plant import config_from_parameters, Plant, Status
 from tsr_sim.units import Scale
 
-from lab.report import check_page, marker_name, publish
+from lab.report import check_page, marker_name, publish, stamp
 from tsr_koopman_ctrl.control import make_controller, TensionLimiter
 from tsr_koopman_ctrl.control.registry import parse_assignments
 from tsr_koopman_ctrl.control.step import ControlStep
@@ -145,7 +146,10 @@ def main(argv=None):
             print(f'x{slowdown} {start}: {cell(rows[-1], True)}', flush=True)
     header = ' | '.join(f'compute x{s:g}' for s in args.slowdown)
     settings = f" with {', '.join(args.set)}" if args.set else ' (the default)'
-    lines = [f'`{args.law}`{settings} at {args.rate:g} Hz, {args.steps} '
+    command = shlex.join(['python', '-m', 'lab.timed_rehearsal',
+                          *(sys.argv[1:] if argv is None else argv)])
+    lines = [f'Measured by `{command}` ({stamp()}).', '',
+             f'`{args.law}`{settings} at {args.rate:g} Hz, {args.steps} '
              'samples a run; each cell: settle time over the minimum time at the swing, '
              + ('the largest |theta| [rad], ' if args.set else '')
              + 'states dropped, the longest step after the first in periods, supervisor '

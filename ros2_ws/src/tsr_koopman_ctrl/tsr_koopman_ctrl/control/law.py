@@ -152,6 +152,13 @@ class Law:
         """The command that makes the plant feel `felt` (the inverse of `felt`)."""
         return float(felt)
 
+    def felt_least(self, command, sigmas):
+        """The least tension the plant may feel for `command`: the disturbance estimate taken
+        `sigmas` standard deviations of its uncertainty toward less tension (an actuator not
+        yet seen pulling is known no better than the observer's prior); `felt` without an
+        observer."""
+        return self.felt(command)
+
     def prediction(self):
         """The states the law's plan predicts from the last state it computed for (N + 1, n),
         or None for a law without a plan. The supervisor checks the plan's bounds on it."""
@@ -210,6 +217,9 @@ class Wrapper(Law):
 
     def command_for(self, felt):
         return self.law.command_for(felt)
+
+    def felt_least(self, command, sigmas):
+        return self.law.felt_least(command, sigmas)
 
     def hand_over(self, reason):
         return self.law.hand_over(reason)

@@ -27,6 +27,8 @@ an actuator lag is read as a fast-moving d, which with the gain model and lags >
 a limit cycle between d and the lag (docs/robustness.md).
 """
 
+import math
+
 import numpy as np
 from tsr_sim import dynamics
 
@@ -116,6 +118,14 @@ class DisturbanceObserver:
     @property
     def disturbance(self):
         return self.nominal if self.estimate is None else float(self.estimate[-1])
+
+    @property
+    def spread(self):
+        """The standard deviation of the disturbance estimate (its prior's before the first
+        update)."""
+        variance = (self.initial_covariance if self.covariance is None
+                    else self.covariance)[-1, -1]
+        return math.sqrt(max(float(variance), 0.0))
 
     def applied(self, command, disturbance=None):
         """The tension the plant feels for `command`, by the disturbance model."""

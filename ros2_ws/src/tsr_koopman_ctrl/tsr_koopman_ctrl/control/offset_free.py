@@ -141,6 +141,11 @@ class OffsetFree(Wrapper):
     def command_for(self, felt):
         return float(self.observer.command_for(felt))
 
+    def felt_least(self, command, sigmas):
+        o = self.observer
+        weakest = o.disturbance - sigmas * o.spread
+        return float(min(o.applied(command), o.applied(command, weakest)))
+
     def hand_over(self, reason):
         return None       # (a law under the observer has no fallback of its own)
 

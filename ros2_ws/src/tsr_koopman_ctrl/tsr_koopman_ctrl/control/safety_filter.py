@@ -24,6 +24,14 @@ certificate is checked again from the measured state, and one that no longer hol
 gives way to the verified law flown closed loop, as it is before any certificate exists
 (`uncertified`: a start from which no backup is certified).
 
+Under the supervisor a refused command hands the plant to its verified fallback, which plans
+in the shadow at every step (`shadow: auto`) so that it takes over warm, from its own plan, as
+the verified law alone flies (taking over cold, or from a plan not its own, its plans drifted
+off the verified law's and lost robots it held); while it flies, the filter passes it. A
+command's certificate plans with the least tension the actuator surely gives
+(`actuator_sigmas` of the observer's uncertainty below its estimate): an actuator not yet seen
+pulling is known only to the observer's prior.
+
 Terminal set: with the tether stopped (l' = 0) the planar equations keep E = theta'^2 / 2 +
 3/2 sin^2 theta constant, so the swing stays within asin(sqrt(2 E / 3)); the reel hold needs
 the tension l ((1 + theta')^2 + 3 cos^2 theta - 1), at most l (3 + 2 E + 2 sqrt(2 E)) on that
@@ -92,6 +100,12 @@ class SafetyFilterSettings(LawSettings):
                               "missing: the kept one flies); 0: none, every step certified "
                               "in full (a run then depends on nothing but its inputs)",
                               low=0.0, high=10.0)
+    actuator_sigmas: float = setting(1.0, "standard deviations of the observer's actuator "
+                                     'estimate by which the tension a certificate may plan '
+                                     'with is lowered (an actuator not yet seen pulling is '
+                                     "known only to the observer's prior: a weak one taken "
+                                     'at its nominal gain lost the robot)', low=0.0,
+                                     high=10.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -257,8 +271,9 @@ class SafetyFilter(Wrapper):
         asked = self.law.compute(x)
         self.requested = asked
         if self.law.flying == FALLBACK:
-            # The supervisor's verified fallback flies: a verified law's command is not the
-            # filter's to certify (the fallback holds where it holds).
+            # The supervisor's verified fallback flies, warm from its own plans as the
+            # verified law alone flies (`shadow`): not the filter's to certify. (Certified, its
+            # refused commands gave way to the filter's plans and settled later.)
             self.certificate, self.backup_plan = VERIFIED, None
             self.counts[VERIFIED] += 1
             return asked
@@ -266,7 +281,7 @@ class SafetyFilter(Wrapper):
         backup = None
         if math.isfinite(asked):
             asked = min(max(asked, 0.0), self.u_max)
-            backup = self.certify(x, self.felt(asked), felt_range, start)
+            backup = self.certify(x, self.felt(asked), self.surely_felt(), start)
         if backup is not None:
             self.certificate, (self.backup_used, self.backup_plan) = CERTIFIED, backup
             self.counts[CERTIFIED] += 1
@@ -286,6 +301,15 @@ class SafetyFilter(Wrapper):
         if math.isfinite(asked):
             self.correction_sum += abs(command - asked)
         return command
+
+    def surely_felt(self):
+        """The felt tensions a certificate of the law's command may plan with: from the least
+        the plant feels for no tension to the least it surely feels for the limit
+        (`actuator_sigmas`). (The verified law's own plans, when the command is refused, keep
+        the nominal range: they fly what it would fly alone.)"""
+        sigmas = self.filter_settings.actuator_sigmas
+        low = self.felt(0.0)
+        return low, max(self.law.felt_least(self.u_max, sigmas), low)
 
     def certify(self, x, felt, felt_range, start):
         """(backup, its felt tensions from the state `felt` leads to) if a backup from there

@@ -80,11 +80,12 @@ class SupervisorSettings(LawSettings):
                                     'after taking back waits twice as long the next time, up '
                                     'to this many times takeback_steps (1: always '
                                     'takeback_steps)', low=1, high=10 ** 6)
-    shadow: str = setting('armed', "when the fallback plans beside the learned law, so that it "
+    shadow: str = setting('auto', "when the fallback plans beside the learned law, so that it "
                           "takes over warm: 'armed' (for arm_steps steps after each fault of "
-                          "the learned law), 'always', or 'never' (it starts cold when it "
-                          'takes over); its observer keeps up every step',
-                          choices=('armed', 'always', 'never'))
+                          "the learned law), 'always', 'never' (it starts cold when it "
+                          "takes over), or 'auto': always under the safety filter (it may "
+                          'hand over at any step), else armed; its observer keeps up every '
+                          'step', choices=('auto', 'armed', 'always', 'never'))
     arm_steps: int = setting(100, 'steps the fallback stays armed after a fault of the learned '
                              'law', low=1, high=10 ** 7)
 
@@ -99,6 +100,9 @@ class Supervisor(Law):
         self.name, self.Settings, self.settings = learned.name, learned.Settings, learned.settings
         self.h, self.u_max, self.model = learned.h, learned.u_max, learned.model
         self.supervisor_settings = build(SupervisorSettings, settings, overrides)
+        if self.supervisor_settings.shadow == 'auto':      # (no safety filter said otherwise)
+            self.supervisor_settings = dataclasses.replace(self.supervisor_settings,
+                                                           shadow='armed')
         if self.supervisor_settings.fault_count > self.supervisor_settings.fault_window:
             raise ValueError('supervisor.fault_count must be <= supervisor.fault_window (more '
                              'faults than steps counted would never distrust the law), got '
@@ -281,9 +285,10 @@ class Supervisor(Law):
         return (self.learned if self.flying == LEARNED else self.fallback).guess()
 
     def start_from(self, guess):
-        """Offered a plan for the law that flies next: after a hand-over the safety filter
-        offers its verified law's (the fallback, not having planned, would start cold: a
-        poorer plan that lost the robot where the verified law alone held it)."""
+        """Offered a plan for the law that flies next: after a hand-over with no plan of the
+        fallback's this step (`shadow` armed or never) the safety filter offers its verified
+        law's (cold, the fallback's poorer first plan lost the robot where the verified law
+        alone held it)."""
         (self.learned if self.flying == LEARNED else self.fallback).start_from(guess)
 
     def swing_bound(self):
@@ -302,6 +307,9 @@ class Supervisor(Law):
 
     def command_for(self, felt):
         return self.fallback.command_for(felt)
+
+    def felt_least(self, command, sigmas):
+        return self.fallback.felt_least(command, sigmas)
 
     def residual(self):
         return self.learned.residual()
