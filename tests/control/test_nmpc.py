@@ -234,7 +234,9 @@ def test_koopman_nmpc_deploys_near_the_frontier(start):
     states, tensions = closed_loop(law, start, 400)
     summary = figures(states, tensions, start)
     assert summary['frontier_ratio'] is not None and summary['frontier_ratio'] <= 1.06
-    assert summary['swing'] <= 0.8 and law.fallbacks == 0
+    # (At most the first step's: under the filter the learned law starts from the shadow
+    # fallback's plan, and where one RTI step from it fails it starts cold, counted.)
+    assert summary['swing'] <= 0.8 and law.fallbacks <= 1
 
 
 def test_koopman_nmpc_flies_the_momentum_model_near_the_frontier():
