@@ -113,9 +113,10 @@ def test_resumed_where_the_hold_stopped_a_deployment_the_law_starts_cold(deploye
         starts.append(np.array(x)), cold_start(x, *args, **kwargs))[1])
     step.resume()
     measured = sim.measure()
+    before = deployed.fallbacks
     result = step(measured)
     assert len(starts) == 1 and np.allclose(starts[0], measured, atol=1e-3)
-    assert result.outcome.name == 'OK' and deployed.fallbacks == 0
+    assert result.outcome.name == 'OK' and deployed.fallbacks == before
 
 
 def observed(steps=40):
