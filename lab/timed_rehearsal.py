@@ -3,7 +3,8 @@ does, as `sim_node` in `mode: timed` and a real plant do, and the law answers th
 when its compute (measured, wall clock) is done.
 
     python -m lab.timed_rehearsal [--slowdown 1 1.5 2] [--rate 100] [--steps 800]
-        [--set koopman_nmpc.theta_max=0.4 ...] [--out lab/results/timed_rehearsal]
+        [--set koopman_nmpc.theta_max=0.4 ...] [--against physics_nmpc]
+        [--out lab/results/timed_rehearsal]
 
 What the node does, step for step (`controller_node`, docs/supervisor.md): the law computes
 for the newest state k; meanwhile the plant flies the command it has; the new command applies
@@ -12,7 +13,9 @@ are dropped and the law told how many samples passed (`ControlStep(x, elapsed)`)
 command of a run starts its clock (`clock_start: command`). `--slowdown` multiplies every
 measured compute (2: a machine half as fast, or a loaded one), so what a slower host would do
 is seen on this one. `--set` gives the law's settings as deploy's does (the swing bound, say:
-each cell then also gives the run's largest |theta|). Writes timed_rehearsal.md and .json
+each cell then also gives the run's largest |theta|). `--against` flies a verified law alone
+from the same starts at the same speeds: under the table, per speed, the runs lost where it
+alone holds. Writes timed_rehearsal.md and .json
 into --out and the table into docs/supervisor.md between its markers.
 """
 
@@ -34,6 +37,8 @@ from tsr_koopman_ctrl.control.step import ControlStep
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, HELD_OUT_STARTS, run_figures
 
 STARTS = COMPARISON_STARTS + HELD_OUT_STARTS
+#: A run under a swing bound holds it within this much more [rad] (the safety campaign's).
+SWING_TOLERANCE = 0.005
 PAGE = os.path.join('docs', 'supervisor.md')
 
 
@@ -108,6 +113,31 @@ def cell(row, swing=False):
             f"{row['switches']} switches")
 
 
+def held(row, limit):
+    """A run held: in the domain and, flown under a swing bound, within `limit` [rad]."""
+    return not row['lost'] and (limit is None or row['swing'] <= limit)
+
+
+def summary(rows, reference, slowdowns, against, limit):
+    """Lines under the table, per speed: the runs lost (past the bound, with one), the
+    longest step, and where `against` flew too, the runs lost where it alone holds."""
+    lines = []
+    for slowdown in slowdowns:
+        mine = [r for r in rows if r['slowdown'] == slowdown]
+        lost = [r['start'] for r in mine if not held(r, limit)]
+        line = (f'- compute x{slowdown:g}: {len(lost)} of {len(mine)} runs lost'
+                + (f' (past {limit:g} rad or out of the domain)' if limit else '')
+                + f"; longest step {max(r['longest'] for r in mine):.1f} periods")
+        if against:
+            kept = {tuple(r['start']) for r in reference
+                    if r['slowdown'] == slowdown and held(r, limit)}
+            worse = [start for start in lost if tuple(start) in kept]
+            line += (f'; lost where `{against}` alone holds ({len(kept)} runs): {len(worse)}'
+                     + (f" ({', '.join(str(start) for start in worse)})" if worse else ''))
+        lines.append(line)
+    return lines
+
+
 def parser():
     p = argparse.ArgumentParser(prog='timed_rehearsal', description=__doc__.split('\n\n')[0])
     p.add_argument('--slowdown', type=float, nargs='+', default=[1.0, 1.5, 2.0])
@@ -117,6 +147,10 @@ def parser():
     p.add_argument('--set', action='append', default=[], metavar='SECTION.SETTING=VALUE',
                    help="the law's settings and its sections' (observer, supervisor, "
                    'safety_filter), as deploy --set')
+    p.add_argument('--against', metavar='LAW',
+                   help='a verified law flown alone from the same starts at the same speeds '
+                   '(its settings by --set too): the table then counts the runs the law lost '
+                   'where this one holds')
     p.add_argument('--out', default=os.path.join('lab', 'results', 'timed_rehearsal'))
     p.add_argument('--page', default=PAGE)
     return p
@@ -139,11 +173,20 @@ def main(argv=None):
                           supervisor=sections.get('supervisor'),
                           safety=sections.get('safety_filter'), **sections.get(args.law, {}))
     law.warm_up()
-    rows = []
+    rows, reference = [], []
     for slowdown in args.slowdown:
         for start in STARTS:
             rows.append(fly(start, slowdown, args.rate, args.steps, law))
             print(f'x{slowdown} {start}: {cell(rows[-1], True)}', flush=True)
+    if args.against:
+        verified = make_controller(args.against, **sections.get(args.against, {}))
+        verified.warm_up()
+        for slowdown in args.slowdown:
+            for start in STARTS:
+                reference.append({**fly(start, slowdown, args.rate, args.steps, verified),
+                                  'law': args.against})
+                print(f'{args.against} x{slowdown} {start}: {cell(reference[-1], True)}',
+                      flush=True)
     header = ' | '.join(f'compute x{s:g}' for s in args.slowdown)
     settings = f" with {', '.join(args.set)}" if args.set else ' (the default)'
     command = shlex.join(['python', '-m', 'lab.timed_rehearsal',
@@ -159,8 +202,12 @@ def main(argv=None):
         cells = [cell(r, bool(args.set)) for s in args.slowdown for r in rows
                  if r['start'] == list(start) and r['slowdown'] == s]
         lines.append(f'| {list(start)} | ' + ' | '.join(cells) + ' |')
+    bound = law.swing_bound()
+    limit = bound + SWING_TOLERANCE if math.isfinite(bound) else None
+    lines += [''] + summary(rows, reference, args.slowdown, args.against, limit)
     text = '\n'.join(lines) + '\n'
-    publish(args.out, 'timed_rehearsal', rows, text, args.page, marker=marker_name(args.out))
+    publish(args.out, 'timed_rehearsal', rows + reference, text, args.page,
+            marker=marker_name(args.out))
     return 0
 
 

@@ -184,6 +184,46 @@ def test_the_learned_nmpc_takes_up_again_from_the_fallback_s_plan(monkeypatch):
     assert colds == [] and learned.plan is not None
 
 
+def test_judged_while_the_fallback_flies_a_failed_learned_step_is_not_recovered(monkeypatch):
+    """On trial (the fallback flies) a failed RTI step of the learned NMPC, and a failed start
+    from the fallback's plan after its rest, answer no command and are distrusted at once,
+    without the cold start that recovers a failed step while it flies (in the 100 Hz timed
+    loop such cold starts took 50-70 ms, the plant flew stale commands and the robot was lost
+    where the verified law alone held it). Both laws offset-free, as deployed."""
+    from tsr_koopman_ctrl.control.nmpc import PhysicsNmpc
+    from tsr_koopman_ctrl.control.offset_free import OffsetFree
+    nmpc = PhysicsNmpc()
+    supervisor = Supervisor(OffsetFree(nmpc), OffsetFree(PhysicsNmpc()), takeback_steps=3)
+    x = np.array([0.2, -0.1, -0.8, 0.6])
+
+    def step():
+        tension = supervisor.compute(x)
+        supervisor.applied(tension)
+        return tension
+    step()                                # the run's first step: cold
+    colds = []
+    cold_start = nmpc.cold_start
+    monkeypatch.setattr(nmpc, 'cold_start', lambda *args, **kwargs: (
+        colds.append(supervisor.flying), cold_start(*args, **kwargs))[1])
+    monkeypatch.setattr(nmpc, 'solve', lambda *args: None)
+    step()                                # flying: a fallback, recovered
+    assert colds == [LEARNED] and nmpc.fallbacks == 1 and supervisor.flying == LEARNED
+    step()                                # the second fault in a row: the fallback flies
+    assert supervisor.flying == FALLBACK and supervisor.monitor == 'fallback'
+    assert colds == [LEARNED, LEARNED] and not supervisor.resting
+    tension = step()                      # on trial, from its own (recovered) plan
+    assert np.isfinite(tension) and tension == supervisor.planned[0]   # the fallback's
+    assert nmpc.trial and nmpc.fallbacks == 3 and nmpc.plan is None
+    assert supervisor.resting == 3 and colds == [LEARNED, LEARNED]
+    for _ in range(3):                    # its rest
+        step()
+    tension = step()                      # back on trial, from the fallback's plan: fails
+    assert np.isfinite(tension) and tension == supervisor.planned[0]
+    assert nmpc.fallbacks == 4 and supervisor.resting == 3 and colds == [LEARNED, LEARNED]
+    nmpc.on_trial(False)
+    assert np.isfinite(nmpc.compute(x)) and len(colds) == 3     # flying: a cold start
+
+
 def test_make_controller_supervises_learned_laws_only():
     assert isinstance(make_controller('koopman_nmpc', safety='none'), Supervisor)
     assert not isinstance(make_controller('koopman_nmpc', supervisor='none', safety='none'),

@@ -82,3 +82,22 @@ def test_the_study_writes_its_table(tmp_path):
     text = page.read_text()
     assert text.count('| [') == 9 and 'compute x1' in text
     assert (out / 'timed_rehearsal.json').exists()
+
+
+def test_the_summary_counts_the_runs_lost_where_the_verified_law_alone_holds():
+    """Under a bound a run is lost out of the domain or past the bound's tolerance; a start
+    the verified law loses too is not counted against the law."""
+    from lab.timed_rehearsal import summary
+
+    def row(start, lost=False, swing=0.39, longest=0.5):
+        return {'start': list(start), 'slowdown': 1.0, 'lost': lost, 'swing': swing,
+                'longest': longest}
+    a, b, c = (0.0, 0.0, -0.99, 0.5), (0.1, 0.0, -0.9, 0.3), (0.2, 0.0, -0.9, 0.3)
+    rows = [row(a, swing=0.41, longest=1.4), row(b, lost=True), row(c)]
+    reference = [row(a), row(b, lost=True), row(c)]
+    line, = summary(rows, reference, [1.0], 'physics_nmpc', 0.405)
+    assert line == ('- compute x1: 2 of 3 runs lost (past 0.405 rad or out of the domain); '
+                    'longest step 1.4 periods; lost where `physics_nmpc` alone holds (2 runs):'
+                    ' 1 ([0.0, 0.0, -0.99, 0.5])')
+    unbounded, = summary(rows, [], [1.0], None, None)
+    assert unbounded == '- compute x1: 1 of 3 runs lost; longest step 1.4 periods'

@@ -130,6 +130,13 @@ class Law:
         memory of what was flown (an observer, a plan's rate term, an actuator model) takes
         it from here; the others ignore it."""
 
+    def on_trial(self, trial):
+        """`trial` True: from this step on another law's commands fly and this law's are only
+        judged (the supervisor's learned law while its fallback flies), False: its own fly. A
+        law whose failed step recovers at a cost (the NMPC's cold start) answers NaN on trial
+        instead (no command, and a fallback counted), so that judging it never stretches the
+        loop's step; the others ignore it."""
+
     def hand_over(self, reason):
         """The safety filter refused this step's tension (`reason`): a law with a verified
         fallback of its own (the supervisor) hands the plant to it from here and returns the
@@ -220,6 +227,9 @@ class Wrapper(Law):
 
     def felt_least(self, command, sigmas):
         return self.law.felt_least(command, sigmas)
+
+    def on_trial(self, trial):
+        self.law.on_trial(trial)
 
     def hand_over(self, reason):
         return self.law.hand_over(reason)

@@ -54,7 +54,9 @@ exact equations by default, ~10 ms: inside a running loop a cold start must fit 
 two). A law without a plan that is offered one made for the same state by another law on the
 same grid (`start_from`: the supervisor's fallback, when the learned law takes up again) starts
 with one RTI step from its nodes instead; a law resumed after a pause in the run (`resume`)
-with one RTI step from its own plan, unless the plant moved off it meanwhile.
+with one RTI step from its own plan, unless the plant moved off it meanwhile. On trial
+(`Law.on_trial`: the supervisor's fallback flies and this law is only judged) a failed step
+or a failed start answers NaN, its plan dropped, with no cold start.
 """
 
 import dataclasses
@@ -234,6 +236,9 @@ class Nmpc(Law):
         self.offered = None
         #: The next step is the first after a pause (`resume`).
         self.resumed = False
+        #: Another law flies and this one is judged (`on_trial`): a failed step is not
+        #: recovered.
+        self.trial = False
         #: RTI steps whose sensitivities were chained exactly (HELD_DEFECT_LIMIT).
         self.exact_steps = 0
         #: The tensions the plans may take: [0, u_max], or the felt range the offset-free
@@ -266,7 +271,8 @@ class Nmpc(Law):
         resumed, self.resumed = self.resumed, False
         if self.plan is None:
             self.age = 1
-            return self.fly(self.start(x, offered))
+            tension = self.start(x, offered)
+            return tension if math.isnan(tension) else self.fly(tension)
         # 1. shift: node j advanced one sample lies at the new grid's time j (`age` samples
         # when the loop dropped states: the flown tension was held over them)
         age, self.age = self.age, 1
@@ -279,6 +285,10 @@ class Nmpc(Law):
         self.missed = None if resumed else x - nodes[0]
         if resumed and not np.abs(x - nodes[0]).max() <= RESUME_MISS_LIMIT:
             self.flown = None       # (the hold flew last, a tension the law does not know)
+            if self.trial:          # from the plan offered, as after a rest
+                self.plan = self.nodes = self.felt_plan = None
+                tension = self.start(x, offered)
+                return tension if math.isnan(tension) else self.fly(tension)
             return self.fly(self.cold_start(x))
         nodes[0] = x
         step = self.iterate(nodes, shifted) if np.all(np.isfinite(nodes)) else None
@@ -286,6 +296,8 @@ class Nmpc(Law):
             # A failed QP or a node off the map's domain: a cold start from here (from the
             # shifted plan if its rollout stays in the domain, else from the LQR plan)
             self.fallbacks += 1       # (once, whether the cold start then solves or not)
+            if self.trial:
+                return self.unanswered(x)
             return self.fly(self.cold_start(x, shifted, count=False, guide=self.recovery))
         self.plan, self.nodes = step
         self.felt_plan = self.felt(self.plan)
@@ -294,12 +306,15 @@ class Nmpc(Law):
     def start(self, x, offered):
         """The first tension without a plan of its own: one RTI step from the plan `offered`
         (another law's for x, same grid; if that fails, a fallback: a recovery's cold start
-        from it), else a cold start."""
-        if offered is None:
+        from it), else a cold start. On trial (`on_trial`) a failed start, or one with no plan
+        offered, is a fallback answered NaN (`unanswered`)."""
+        if offered is None and not self.trial:
             return self.cold_start(x)
-        if self.adopt(x, offered):
+        if offered is not None and self.adopt(x, offered):
             return float(self.plan[0])
         self.fallbacks += 1
+        if self.trial:
+            return self.unanswered(x)
         return self.cold_start(x, np.clip(np.array(offered[0], dtype=float), *self.felt_range),
                                count=False, guide=self.recovery)
 
@@ -316,6 +331,15 @@ class Nmpc(Law):
         self.felt_plan = self.felt(self.plan)
         self.missed = None
         return True
+
+    def on_trial(self, trial):
+        self.trial = bool(trial)
+
+    def unanswered(self, x):
+        """A failed step on trial (`Law.on_trial`): no command and no plan (the next step
+        starts again, from the plan offered then); a cold start would cost tens of ms."""
+        self.observe(x)
+        return math.nan
 
     def start_from(self, guess):
         if guess is not None and np.shape(guess[0]) == self.durations.shape and np.shape(

@@ -17,6 +17,7 @@ swing.
 """
 
 import dataclasses
+import math
 from typing import ClassVar
 
 import numpy as np
@@ -95,6 +96,8 @@ class OffsetFree(Wrapper):
         low = max(self.observer.applied(0.0), 0.0)
         self.law.bound_tension(low, max(self.observer.applied(self.law.u_max), low + 1e-6))
         felt = self.law.compute(estimate if self.observer_settings.filtered_state else measured)
+        if not math.isfinite(felt):
+            return math.nan      # (no command: the last one sent stays the observer's)
         command = min(max(self.observer.command_for(felt), 0.0), self.law.u_max)
         self.last_command = command   # the observer must know the clamped command
         return command

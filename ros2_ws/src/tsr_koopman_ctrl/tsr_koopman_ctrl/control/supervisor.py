@@ -7,15 +7,18 @@ the states where it takes over (docs/supervisor.md has the region, lab/fallback_
 measures it). The learned law keeps computing while the fallback flies (told the tension
 flown) and takes back, with hysteresis, once it has been trusted for `takeback_steps` steps
 in a row; when it faults while the fallback flies, it rests for `takeback_steps` steps (it sees
-the states, its observer keeps up, it plans nothing: a lost learned law would cold-start every
+the states, its observer keeps up, it plans nothing: a lost learned law would fail every
 step) and then starts afresh on probation, from the plan the fallback made for that state (one
-RTI step: `Law.start_from`), not from a cold start. A learned law distrusted again within
-its probation (the wait it just served, after taking back) waits twice as long the next time,
-up to `takeback_backoff` times `takeback_steps`, and back to `takeback_steps` once it has
-flown a whole probation trusted: a model that is wrong near the target would otherwise take
-back and lose the plant again every few tens of steps, and the plant would never settle. The
-fallback computes every step too (`shadow`), so it takes over warm: its plan is the one it
-would be flying.
+RTI step: `Law.start_from`), not from a cold start. Judged while the fallback flies, it is on
+trial (`Law.on_trial`): a failed step answers no command (distrusted at once) instead of the
+cold start that recovers it while it flies, so that judging it never stretches the loop's
+step (in the 100 Hz timed loop such cold starts took 50-70 ms). A learned law distrusted
+again within its probation (the wait it just served, after taking back) waits twice as long
+the next time, up to `takeback_backoff` times `takeback_steps`, and back to `takeback_steps`
+once it has flown a whole probation trusted: a model that is wrong near the target would
+otherwise take back and lose the plant again every few tens of steps, and the plant would
+never settle. The fallback computes every step too (`shadow`), so it takes over warm: its
+plan is the one it would be flying.
 
 What the monitor watches (each a reason on /diagnostics and in the bag):
 
@@ -153,6 +156,9 @@ class Supervisor(Law):
             self.resting -= 1
             self.learned.observe(x)
         else:
+            # While the fallback flies the learned law is judged, not flown: a failed step
+            # is its verdict, not a cold start that stretches the step (`Law.on_trial`)
+            self.learned.on_trial(self.flying != LEARNED)
             learned = self.run(self.learned, x)
             self.monitor = self.judge(x, *learned)
             if self.monitor:
