@@ -271,8 +271,7 @@ class Nmpc(Law):
         resumed, self.resumed = self.resumed, False
         if self.plan is None:
             self.age = 1
-            tension = self.start(x, offered)
-            return tension if math.isnan(tension) else self.fly(tension)
+            return self.start(x, offered)
         # 1. shift: node j advanced one sample lies at the new grid's time j (`age` samples
         # when the loop dropped states: the flown tension was held over them)
         age, self.age = self.age, 1
@@ -287,8 +286,7 @@ class Nmpc(Law):
             self.flown = None       # (the hold flew last, a tension the law does not know)
             if self.trial:          # from the plan offered, as after a rest
                 self.plan = self.nodes = self.felt_plan = None
-                tension = self.start(x, offered)
-                return tension if math.isnan(tension) else self.fly(tension)
+                return self.start(x, offered)
             return self.fly(self.cold_start(x))
         nodes[0] = x
         step = self.iterate(nodes, shifted) if np.all(np.isfinite(nodes)) else None
@@ -304,19 +302,20 @@ class Nmpc(Law):
         return self.fly(float(self.plan[0]))
 
     def start(self, x, offered):
-        """The first tension without a plan of its own: one RTI step from the plan `offered`
-        (another law's for x, same grid; if that fails, a fallback: a recovery's cold start
-        from it), else a cold start. On trial (`on_trial`) a failed start, or one with no plan
-        offered, is a fallback answered NaN (`unanswered`)."""
+        """The first tension without a plan of its own, flown: one RTI step from the plan
+        `offered` (another law's for x, same grid; if that fails, a fallback: a recovery's cold
+        start from it), else a cold start. On trial (`on_trial`) a failed start, or one with no
+        plan offered, is a fallback answered NaN (`unanswered`)."""
         if offered is None and not self.trial:
-            return self.cold_start(x)
+            return self.fly(self.cold_start(x))
         if offered is not None and self.adopt(x, offered):
-            return float(self.plan[0])
+            return self.fly(float(self.plan[0]))
         self.fallbacks += 1
         if self.trial:
             return self.unanswered(x)
-        return self.cold_start(x, np.clip(np.array(offered[0], dtype=float), *self.felt_range),
-                               count=False, guide=self.recovery)
+        return self.fly(self.cold_start(
+            x, np.clip(np.array(offered[0], dtype=float), *self.felt_range), count=False,
+            guide=self.recovery))
 
     def adopt(self, x, offered):
         """One RTI step from `offered` = (plan, nodes) made for x by another law: True if it
