@@ -1,11 +1,13 @@
-"""The predictive safety filter signed off by Monte Carlo: two campaign specs and their page.
+"""The predictive safety filter signed off by Monte Carlo: three campaign specs and their page.
 
     python -m lab.safety_campaign --out lab/results/safety_campaign --page docs/supervisor.md
 
 flies `lab/campaigns/safety_filter.yaml` (dispersed short-tether starts, actuators and sensor
 noise, a 0.4-rad swing bound: the filtered learned law, the same law under its supervisor
-alone, the verified law alone) and `lab/campaigns/safety_filter_nominal.yaml` (the nine
-comparison starts, nominal plant, no swing bound: filtered and supervised) through the
+alone, the verified law alone), `lab/campaigns/safety_filter_nominal.yaml` (the nine
+comparison starts, nominal plant, no swing bound: filtered and supervised) and
+`lab/campaigns/safety_filter_domain.yaml` (the whole domain, dense at the short tether,
+dispersed plants, no swing bound: filtered and the verified law alone) through the
 product's campaign API (`tsr_koopman_ctrl.campaign`, resumed where rows exist), then writes
 the figures the safety issue asks for: cases lost where the verified law holds, the settle time
 against the verified law's where both hold, how often and how much the filter corrects.
@@ -17,26 +19,29 @@ import os
 from lab.report import check_page, marker_name, publish, stamp
 
 SPECS = {'dispersed': 'lab/campaigns/safety_filter.yaml',
-         'nominal': 'lab/campaigns/safety_filter_nominal.yaml'}
+         'nominal': 'lab/campaigns/safety_filter_nominal.yaml',
+         'domain': 'lab/campaigns/safety_filter_domain.yaml'}
 
 
 def parser():
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--out', default='lab/results/safety_campaign')
     p.add_argument('--page', default='', help='docs page with the markers named after --out')
-    p.add_argument('--runs', type=int, help='dispersed cases (default: the spec\'s)')
+    p.add_argument('--runs', type=int,
+                   help='cases of each part with dispersed starts (default: the spec\'s)')
     p.add_argument('--workers', type=int, help='local Dask workers (default: one per core)')
     p.add_argument('--address', help='a Dask scheduler to run on instead')
     return p
 
 
 def fly(out, runs=None, workers=None, address=None):
-    """{part: rows} of both campaigns, each under <out>/<part>, resumed if begun."""
+    """{part: rows} of the campaigns, each under <out>/<part>, resumed if begun."""
     from tsr_koopman_ctrl.campaign import load_spec, run_campaign
     rows = {}
-    for part, path in SPECS.items():
-        campaign = load_spec(path, runs=runs) if part == 'dispersed' and runs else \
-            load_spec(path)
+    for part in SPECS:
+        campaign = load_spec(SPECS[part])
+        if runs and campaign.start_box:
+            campaign = load_spec(SPECS[part], runs=runs)
         directory = os.path.join(out, part)
         resume = os.path.exists(os.path.join(directory, 'spec.yaml'))
         rows[part] = run_campaign(campaign, directory, workers=workers, address=address,
@@ -117,10 +122,10 @@ def main(argv=None):
         check_page(args.page, marker_name(args.out))
     rows = fly(args.out, args.runs, args.workers, args.address)
     from tsr_koopman_ctrl.campaign import load_spec
-    dispersed = load_spec(SPECS['dispersed'])
-    nominal = load_spec(SPECS['nominal'])
+    dispersed, nominal, domain = (load_spec(SPECS[part]) for part in SPECS)
     results = {'dispersed': figures(rows['dispersed'], dispersed.swing_limit),
-               'nominal': figures(rows['nominal'], None, reference='supervised')}
+               'nominal': figures(rows['nominal'], None, reference='supervised'),
+               'domain': figures(rows['domain'], domain.swing_limit)}
     command = ' '.join(['python -m lab.safety_campaign']
                        + ([f'--runs {args.runs}'] if args.runs else [])
                        + [f'--out {args.out}'] + ([f'--page {args.page}'] if args.page else []))
@@ -131,7 +136,10 @@ def main(argv=None):
               results['dispersed'], dispersed.steps),
         table('Nominal plant, no swing bound, the nine comparison starts '
               '(`lab/campaigns/safety_filter_nominal.yaml`)', results['nominal'],
-              nominal.steps)])
+              nominal.steps),
+        table('The whole domain, dense at the short tether, no swing bound '
+              '(`lab/campaigns/safety_filter_domain.yaml`)', results['domain'],
+              domain.steps)])
     publish(args.out, marker_name(args.out), results, text, args.page)
     return 0
 

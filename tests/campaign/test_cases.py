@@ -8,6 +8,7 @@ region, assurance) are specs of this form.
 import math
 import os
 
+import numpy as np
 import pytest
 import yaml
 
@@ -174,3 +175,17 @@ def test_the_lab_s_grids_load(path):
     campaign = load_spec(str(ROOT / path))
     starts = len(campaign.start_list)
     assert campaign.runs == starts * max(1, len(campaign.cases))
+
+
+def test_dense_low_draws_follow_their_density_and_stay_in_the_box():
+    from scipy.stats import kstest
+    from tsr_koopman_ctrl.campaign.spec import Dispersion
+    dispersion = Dispersion(-0.995, 0.0, 'dense_low')
+    draws = np.array([dispersion.draw(u) for u in np.random.default_rng(3).random(4000)])
+    assert draws.min() >= -0.995 and draws.max() <= 0.0
+    # The density 2 (high - v) / w^2, written independently as its CDF.
+    width = 0.995
+    cdf = lambda v: 1.0 - ((0.0 - np.asarray(v)) / width) ** 2   # noqa: E731
+    assert kstest(draws, cdf).pvalue > 0.01
+    assert np.mean(draws < -0.995 + 0.293 * width) == pytest.approx(0.5, abs=0.03)
+    assert kstest(draws, 'uniform', args=(-0.995, width)).pvalue < 1e-6

@@ -8,7 +8,8 @@
       low: [-0.05, -0.1, -0.995, 0.3]
       high: [0.05, 0.1, -0.98, 0.7]
       distribution: uniform   # or normal (truncated to the box, sigma a quarter of it), or
-                              # one per component
+                              # dense_low (density falling linearly from low to zero at
+                              # high: half the draws in the lowest 29%), or one per component
     # start: [[0, 0, -0.99, 0.5], [0, 0, -0.9, 0.3]]   # ... or a list: run n flies n mod len
     # start: [comparison, held_out]                     # ... or named sets (NAMED_STARTS),
     # start: [comparison, [0.1, -0.1, -0.9, 0.5]]       #     alone or among starts
@@ -58,7 +59,7 @@ from tsr_koopman_ctrl.control.registry import CONTROLLERS, law_class, NODE_SECTI
 from tsr_koopman_ctrl.control.settings import build, parse_assignments
 from tsr_koopman_ctrl.evaluation.starts import COMPARISON_STARTS, HELD_OUT_STARTS, PAPER_START
 
-DISTRIBUTIONS = ('uniform', 'normal')
+DISTRIBUTIONS = ('uniform', 'normal', 'dense_low')
 #: Start sets a spec may name (`start: [comparison, held_out]`): the comparison's own.
 NAMED_STARTS = {'comparison': COMPARISON_STARTS, 'held_out': HELD_OUT_STARTS}
 #: A normal dispersion's box is +-2 sigma around its middle (truncated to the box).
@@ -101,9 +102,11 @@ def _count(value, where, low):
 
 @dataclasses.dataclass(frozen=True)
 class Dispersion:
-    """One dispersed value in [low, high]: uniform, or normal about the middle (sigma a quarter
-    of the width) truncated to [low, high]; drawn from one uniform number, so that the
-    distribution of one value never changes the draws of the others."""
+    """One dispersed value in [low, high]: uniform, normal about the middle (sigma a quarter
+    of the width) truncated to [low, high], or dense_low (density 2 (high - v) / (high - low)^2,
+    for a region the campaign should sample densely at one end of the box, such as the short
+    tether); drawn from one uniform number, so that the distribution of one value never changes
+    the draws of the others."""
 
     low: float
     high: float
@@ -134,6 +137,8 @@ class Dispersion:
         """The value at the quantile `uniform` in [0, 1)."""
         if self.distribution == 'uniform':
             return float(self.low + uniform * (self.high - self.low))
+        if self.distribution == 'dense_low':      # the inverse of F(v) = 1 - ((high - v) / w)^2
+            return float(self.high - (self.high - self.low) * math.sqrt(1.0 - uniform))
         from scipy.stats import truncnorm
         middle, sigma = (self.low + self.high) / 2, (self.high - self.low) / (2 * NORMAL_SIGMAS)
         return float(truncnorm.ppf(uniform, -NORMAL_SIGMAS, NORMAL_SIGMAS, loc=middle,
