@@ -32,13 +32,11 @@ from tsr_sim import dynamics
 from tsr_koopman_ctrl.control import CONTROLLERS
 from tsr_koopman_ctrl.control.registry import law_class, preset
 from tsr_koopman_ctrl.evaluation import COMPARISON_STARTS, run_figures
+from tsr_koopman_ctrl.evaluation.figures import SWING_TOLERANCE
 from tsr_koopman_ctrl.evaluation.plots import plot_deployments, plot_ratios
 from tsr_koopman_ctrl import arguments
 from lab.campaigns import add_engine_options, fly
 from lab.report import check_page, marker_name, stamp, write_into_page, write_results
-
-#: How far a run's swing may pass a swing bound and still have held it [rad].
-HELD_TOLERANCE = 0.005
 
 
 #: What a comparison's campaign rows carry beyond their own: the compute's tail, the solver's
@@ -209,7 +207,7 @@ def page_tables(rows, theta_max=None):
                          f"{max(r['tension_max'] for r in mine):.2f} | {compute:.2f} | "
                          f"{sum(r['fallbacks'] for r in mine)} |")
     if theta_max is not None:
-        bound = theta_max + HELD_TOLERANCE
+        bound = theta_max + SWING_TOLERANCE
         lines += ['', f'Where each law held the bound (swing <= {bound:g} rad on the plant):', '',
                   '| law | settings | held | swing where held | frontier ratio where held | '
                   'where it did not: start, swing, outcome |', '|---|---|---|---|---|---|']

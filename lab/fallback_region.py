@@ -8,11 +8,11 @@ out fast, swinging either way), as it is when it takes over from the learned law
 Flies lab/campaigns/fallback_region.yaml (the start grid, physics_nmpc alone, one law per swing
 bound) through the product's campaign API (`tsr_koopman_ctrl.campaign`, resumed where --out
 holds its rows). A start is held when the run never leaves the domain nor tumbles, keeps
-|theta| within the swing bound (+ 0.005 rad; every start of the grid begins within it), and
-settles into the 1% zone within the steps. Writes fallback_region.md (per swing bound: the
-share held in each (l, l') cell over the (theta, theta') grid, and every start that is not
-held), fallback_region.json and a plot fallback_region_<bound>.png per bound into --out, and
-the table into docs/supervisor.md between its markers.
+|theta| within the swing bound (+ SWING_TOLERANCE, 0.005 rad; every start of the grid begins
+within it), and settles into the 1% zone within the steps. Writes fallback_region.md (per
+swing bound: the share held in each (l, l') cell over the (theta, theta') grid, and every
+start that is not held), fallback_region.json and a plot fallback_region_<bound>.png per
+bound into --out, and the table into docs/supervisor.md between its markers.
 """
 
 import argparse
@@ -24,11 +24,10 @@ import numpy as np
 
 from lab.campaigns import add_engine_options, fly, spec_path
 from lab.report import check_page, marker_name, publish
+from tsr_koopman_ctrl.evaluation.figures import SWING_TOLERANCE
 
 SPEC = spec_path('fallback_region.yaml')
 LAW = 'physics_nmpc'
-#: How far past the bound a held run may swing (the NMPC's own margin is 0.003 rad).
-TOLERANCE = 0.005
 PAGE = os.path.join('docs', 'supervisor.md')
 
 
@@ -66,7 +65,7 @@ def verdict(row, theta_max):
         return 'no tension'
     if row['halted']:
         return 'left the domain or tumbled'
-    if row['swing'] > theta_max + TOLERANCE:
+    if row['swing'] > theta_max + SWING_TOLERANCE:
         return 'passed the swing bound'
     return 'did not settle' if math.isnan(row['settle_tau']) else ''
 

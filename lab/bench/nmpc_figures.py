@@ -37,7 +37,7 @@ from tsr_koopman_ctrl.evaluation import (COMPARISON_STARTS, frontier_tau, HELD_O
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 from lab.bench.printed import marker  # noqa: E402
 from lab.bench.yardstick import seconds as yardstick  # noqa: E402
-from lab.compare import HELD_TOLERANCE  # noqa: E402
+from tsr_koopman_ctrl.evaluation.figures import SWING_TOLERANCE  # noqa: E402
 from lab.report import check_page, stamp, write_into_page  # noqa: E402
 
 STARTS = COMPARISON_STARTS + HELD_OUT_STARTS
@@ -118,7 +118,7 @@ def nominal_tables(rows, laws):
 
 def swing_tables(rows, laws, bound=0.4):
     lines = [f'Settle tau / swing [rad] / **ratio to the {bound}-rad frontier** where the swing '
-             f'stayed within {bound} (+ {HELD_TOLERANCE}); else how it did not:', '',
+             f'stayed within {bound} (+ {SWING_TOLERANCE}); else how it did not:', '',
              '| start | ' + ' | '.join(f'`{law}`' for law in laws) + ' |',
              '|---' * (1 + len(laws)) + '|']
     held, table = {law: 0 for law in laws}, by_start(rows, laws)
@@ -126,7 +126,7 @@ def swing_tables(rows, laws, bound=0.4):
         parts = []
         for law in laws:
             r = cells[law]
-            if r['swing'] <= bound + HELD_TOLERANCE and r['settle_tau'] is not None:
+            if r['swing'] <= bound + SWING_TOLERANCE and r['settle_tau'] is not None:
                 held[law] += 1
                 parts.append(f"{r['settle_tau']:.2f} / {r['swing']:.3f} / "
                              f"**{fmt(r['ratio_to_04_frontier'])}**")

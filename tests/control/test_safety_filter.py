@@ -3,6 +3,7 @@ the reel hold flown on the plant, scripted laws it must pass or correct, and the
 from a start where the supervisor alone loses the robot."""
 
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -12,8 +13,8 @@ from tsr_koopman_ctrl.control import closed_loop, make_controller
 from tsr_koopman_ctrl.control.law import Law
 from tsr_koopman_ctrl.control.offset_free import OffsetFree
 from tsr_koopman_ctrl.control.safety_filter import (Bounds, CERTIFIED, HANDED, KEPT, LAPSED,
-                                                    REPLANNED, SafetyFilter, terminal,
-                                                    UNCERTIFIED, VERIFIED)
+                                                    REPLANNED, Rollouts, SafetyFilter,
+                                                    terminal, UNCERTIFIED, VERIFIED)
 from tsr_koopman_ctrl.control.supervisor import Supervisor
 
 #: A start next to the paper's from which the supervised learned NMPC under a 0.4-rad swing
@@ -82,6 +83,42 @@ def test_the_terminal_set_is_held_by_the_reel_hold_on_the_plant():
     predicted = math.asin(math.sqrt(0.5 ** 2 / 3))
     assert terminal(x, Bounds(predicted + 1e-6, 0.005, 0.0), dynamics.TENSION_LIMIT, 0.002)
     assert not terminal(x, Bounds(predicted - 1e-3, 0.005, 0.0), dynamics.TENSION_LIMIT, 0.002)
+
+
+def rollout_reference(x0, tensions, felt_range, samples, substeps):
+    """A backup flown sample by sample with the plant's numpy RK4: the given felt tension, or
+    the reel hold's (the free length acceleration cancelled, the speed loop), clamped."""
+    states = [np.array(x0, dtype=float)]
+    for k in range(samples):
+        x = states[-1]
+        given = tensions[k] if k < len(tensions) else math.nan
+        if math.isfinite(given):
+            u = given
+        else:
+            free = dynamics.planar_rates(*x, 0.0)[dynamics.LENGTH_RATE]
+            u = free + dynamics.HOLD_GAIN * x[dynamics.LENGTH_RATE]
+        u = min(max(u, felt_range[0]), felt_range[1])
+        states.append(dynamics.rk4_step(x, u, dynamics.PAPER_STEP, substeps))
+    return np.array(states)
+
+
+def test_a_backup_rollout_is_the_plants_rk4_and_its_native_build_the_same_bit_for_bit(
+        tmp_path, monkeypatch):
+    monkeypatch.setenv('XDG_CACHE_HOME', str(tmp_path))
+    tensions = np.r_[np.full(30, 4.2), np.full(20, 0.3), np.full(10, np.nan), np.full(5, 2.0)]
+    rollouts = Rollouts(dynamics.PAPER_STEP, 2, 120)
+    x0 = (0.1, -0.2, -0.95, 0.8)
+    interpreted = rollouts(x0, tensions, (0.1, 4.5))
+    np.testing.assert_allclose(interpreted, rollout_reference(x0, tensions, (0.1, 4.5), 120, 2),
+                               rtol=0, atol=1e-12)
+    if shutil.which('cc') is None:
+        pytest.skip('no C compiler: the virtual machine only')
+    rollouts.compile()
+    rollouts.function.finish(wait=True)
+    assert rollouts.function.native is not None and list(tmp_path.rglob('*.so'))
+    np.testing.assert_array_equal(rollouts(x0, tensions, (0.1, 4.5)), interpreted)
+    # A later filter (another process) loads the build from the cache.
+    assert Rollouts(dynamics.PAPER_STEP, 2, 120).function.native is not None
 
 
 def test_a_safe_command_flies_unchanged_and_a_losing_one_is_corrected():

@@ -294,10 +294,11 @@ _SHARED_BATCHES = {}
 
 
 class BatchFunction:
-    """A CasADi function evaluated by CasADi's virtual machine until its native build is ready,
-    then by that: the same operations, 5-10x faster. The build (CasADi's C code, the system's
-    C compiler) runs in the background and is kept in a cache (`cache_path`) for every later
-    process; without a compiler, or with TSR_KOOPMAN_COMPILE=0, the virtual machine stays."""
+    """A CasADi function of one matrix input and one output evaluated by CasADi's virtual
+    machine until its native build is ready, then by that: the same operations, 5-10x
+    faster. The build (CasADi's C code, the system's C compiler) runs in the background and is
+    kept in a cache (`cache_path`) for every later process; without a compiler, or with
+    TSR_KOOPMAN_COMPILE=0, the virtual machine stays."""
 
     def __init__(self, function, description):
         self.function = function
@@ -318,14 +319,19 @@ class BatchFunction:
 
     def __call__(self, x, u):
         """The outputs (N, 4 or 24) of rows x (N, 4) under u (N,)."""
+        self.arguments[:, :4] = x
+        self.arguments[:, 4] = u
+        return self.run()
+
+    def run(self):
+        """The outputs of the inputs now in `arguments` (the function's one input, row by
+        row): a copy of `results`."""
         if self.native is None:
             self.calls += 1
             if self.build is not None:
                 self.finish()
             elif self.calls == HOT_CALLS:
                 self.compile()
-        self.arguments[:, :4] = x
-        self.arguments[:, 4] = u
         self.evaluate()
         return self.results.copy()
 

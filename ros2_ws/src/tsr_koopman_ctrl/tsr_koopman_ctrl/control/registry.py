@@ -80,15 +80,9 @@ def make_controller(name, settings=None, observer=None, supervisor=None, safety=
     backup = safety.backup
     if backup == 'auto':
         backup = 'physics_nmpc' if law.filtered else 'none'
-    if supervisor.shadow == 'auto':
-        # The filter hands over at any step: the fallback then takes over warm from its own
-        # plan, as the verified law alone flies (cold, or from the filter's plan, its plans
-        # drifted off the verified law's and lost robots it held).
-        supervisor = dataclasses.replace(supervisor,
-                                         shadow='armed' if backup == 'none' else 'always')
     flown = (offset_free(law) if supervisor.fallback == 'none' else
              Supervisor(offset_free(law), offset_free(fallback_law(law, supervisor.fallback)),
-                        supervisor))
+                        supervisor, filtered=backup != 'none'))
     if backup == 'none':
         return flown
     verified = None if backup == 'hold' else lambda: fallback_law(law, backup)

@@ -49,7 +49,9 @@ measured by Monte Carlo campaigns (docs/supervisor.md), not proven.
 """
 
 import dataclasses
+import hashlib
 import math
+import pathlib
 import time
 from typing import ClassVar
 
@@ -70,6 +72,8 @@ LAPSED = 'lapsed'
 #: The supervisor's verified fallback flew (the filter passes it), or took over this step when
 #: the filter refused the learned law's tension (`Law.hand_over`).
 VERIFIED, HANDED = 'verified', 'handed_over'
+#: What the rollouts' native builds are generated from besides the plant (their cache key).
+_SOURCE_DIGEST = hashlib.sha256(pathlib.Path(__file__).read_bytes()).hexdigest()[:16]
 #: A certificate keeps the bounds with this fraction of the swing tolerance and the terminal
 #: speed, and 5% of the hold's tension range spare (`SafetyFilter.check`).
 TIGHTENING = 0.5
@@ -120,10 +124,13 @@ class Bounds:
 class Rollouts:
     """Backups rolled out on the exact planar equations, compiled once (CasADi): from x0, each
     sample flies either its given felt tension or the reel hold's, clamped to the felt range.
-    """
+    One function of one input column [x0; felt range; (tension, hold) per sample], evaluated
+    as the NMPC's physics map is (`BatchFunction`: native code once built, bit for bit)."""
 
     def __init__(self, h, substeps, samples, gain=dynamics.HOLD_GAIN):
         import casadi
+
+        from tsr_koopman_ctrl.control.prediction_maps import BatchFunction
         x = casadi.SX.sym('x', dynamics.PLANAR_DIM)
         given = casadi.SX.sym('given', 2)          # (felt tension, 1 for the reel hold)
         felt_range = casadi.SX.sym('range', 2)
@@ -135,21 +142,39 @@ class Rollouts:
         u = casadi.fmin(casadi.fmax(u, felt_range[0]), felt_range[1])
         end, _ = dynamics.symbolic_rk4(x, u, h, substeps)
         sample = casadi.Function('sample', [x, given, felt_range], [end])
-        self.roll = sample.mapaccum('roll', samples)
+        roll = sample.mapaccum('roll', samples)
+        column = casadi.MX.sym('column', dynamics.PLANAR_DIM + 2 + 2 * samples)
+        n = dynamics.PLANAR_DIM
+        states = roll(column[:n], casadi.reshape(column[n + 2:], 2, samples),
+                      column[n:n + 2])
+        description = ('rollouts', h, substeps, samples, gain, _SOURCE_DIGEST)
+        name = 'tsr_rollouts_' + hashlib.sha256(repr(description).encode()).hexdigest()[:12]
+        self.function = BatchFunction(casadi.Function(name, [column], [casadi.vec(states)]),
+                                      description)
         self.samples = samples
+        self.given = np.zeros((2, samples))
 
     def __call__(self, x0, tensions, felt_range):
         """States (samples + 1, 4) of the backup that flies `tensions` (a felt tension per
         sample; NaN: the reel hold's) from x0."""
-        given = np.zeros((2, self.samples))
+        given = self.given
+        given[0] = 0.0
         given[1] = 1.0
         n = min(len(tensions), self.samples)
         tensions = np.asarray(tensions[:n], dtype=float)
         hold = ~np.isfinite(tensions)
         given[0, :n] = np.where(hold, 0.0, tensions)
         given[1, :n] = hold
-        states = self.roll(np.asarray(x0, dtype=float), given, np.asarray(felt_range))
-        return np.c_[x0, np.array(states)].T
+        column = self.function.arguments[0]
+        column[:4] = x0
+        column[4:6] = felt_range
+        column[6:] = given.ravel(order='F')
+        states = self.function.run()[0].reshape(self.samples, dynamics.PLANAR_DIM)
+        return np.vstack([np.asarray(x0, dtype=float), states])
+
+    def compile(self):
+        """Start its native build (`BatchFunction.compile`)."""
+        self.function.compile()
 
 
 def terminal(x, bounds, felt_high, speed_tolerance, gain=dynamics.HOLD_GAIN):
@@ -239,6 +264,8 @@ class SafetyFilter(Wrapper):
         for x in (dynamics.PAPER_INITIAL_STATE, dynamics.equilibrium_state()):
             self.check(x, [0.0], (0.0, self.u_max))
         self.reset()
+        for rollouts in (self.hold, self.planned):
+            rollouts.compile()   # (the native build in the background: the same numbers)
 
     def bound_tension(self, low, high):
         self.law.bound_tension(low, high)

@@ -96,16 +96,20 @@ class SupervisorSettings(LawSettings):
 class Supervisor(Law):
     """`learned` flown under the monitor, `fallback` taking over (module docstring). Each is a
     law as it would be deployed alone (offset-free, with its own observer), so the fallback
-    flies exactly as it was verified."""
+    flies exactly as it was verified. `filtered`: a safety filter flies it (`shadow` 'auto'
+    resolves to 'always')."""
 
-    def __init__(self, learned, fallback, settings=None, **overrides):
+    def __init__(self, learned, fallback, settings=None, filtered=False, **overrides):
         self.learned, self.fallback = learned, fallback
         self.name, self.Settings, self.settings = learned.name, learned.Settings, learned.settings
         self.h, self.u_max, self.model = learned.h, learned.u_max, learned.model
         self.supervisor_settings = build(SupervisorSettings, settings, overrides)
-        if self.supervisor_settings.shadow == 'auto':      # (no safety filter said otherwise)
-            self.supervisor_settings = dataclasses.replace(self.supervisor_settings,
-                                                           shadow='armed')
+        if self.supervisor_settings.shadow == 'auto':
+            # A filter hands over at any step: the fallback then takes over warm from its own
+            # plan, as the verified law alone flies (cold, or from the filter's plan, its
+            # plans drifted off the verified law's and lost robots it held).
+            self.supervisor_settings = dataclasses.replace(
+                self.supervisor_settings, shadow='always' if filtered else 'armed')
         if self.supervisor_settings.fault_count > self.supervisor_settings.fault_window:
             raise ValueError('supervisor.fault_count must be <= supervisor.fault_window (more '
                              'faults than steps counted would never distrust the law), got '
