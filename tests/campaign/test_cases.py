@@ -177,15 +177,29 @@ def test_the_lab_s_grids_load(path):
     assert campaign.runs == starts * max(1, len(campaign.cases))
 
 
-def test_dense_low_draws_follow_their_density_and_stay_in_the_box():
+@pytest.mark.parametrize('low, high', [(-0.995, 0.0), (0.3, 1.5)])
+def test_dense_low_draws_follow_their_density_and_stay_in_the_box(low, high):
     from scipy.stats import kstest
     from tsr_koopman_ctrl.campaign.spec import Dispersion
-    dispersion = Dispersion(-0.995, 0.0, 'dense_low')
+    dispersion = Dispersion(low, high, 'dense_low')
     draws = np.array([dispersion.draw(u) for u in np.random.default_rng(3).random(4000)])
-    assert draws.min() >= -0.995 and draws.max() <= 0.0
+    assert draws.min() >= low and draws.max() <= high
     # The density 2 (high - v) / w^2, written independently as its CDF.
-    width = 0.995
-    cdf = lambda v: 1.0 - ((0.0 - np.asarray(v)) / width) ** 2   # noqa: E731
+    width = high - low
+    cdf = lambda v: 1.0 - ((high - np.asarray(v)) / width) ** 2   # noqa: E731
     assert kstest(draws, cdf).pvalue > 0.01
-    assert np.mean(draws < -0.995 + 0.293 * width) == pytest.approx(0.5, abs=0.03)
-    assert kstest(draws, 'uniform', args=(-0.995, width)).pvalue < 1e-6
+    assert np.mean(draws < low + 0.293 * width) == pytest.approx(0.5, abs=0.03)
+    assert kstest(draws, 'uniform', args=(low, width)).pvalue < 1e-6
+
+
+def test_the_safety_campaign_s_specs_load_and_judge_the_swing_as_the_studies_do():
+    """The dispersed part's swing limit is the bound plus the studies' tolerance; the domain
+    part flies 1000 cases with no swing bound, its tether length dense at the short end."""
+    from tsr_koopman_ctrl.evaluation.figures import SWING_TOLERANCE
+    dispersed = load_spec(os.path.join(ROOT, 'lab', 'campaigns', 'safety_filter.yaml'))
+    assert dispersed.swing_limit == pytest.approx(0.4 + SWING_TOLERANCE)
+    domain = load_spec(os.path.join(ROOT, 'lab', 'campaigns', 'safety_filter_domain.yaml'))
+    assert domain.runs == 1000 and domain.swing_limit is None
+    assert domain.start_box[2].distribution == 'dense_low'
+    assert load_spec(os.path.join(ROOT, 'lab', 'campaigns', 'safety_filter_domain.yaml'),
+                     runs=20).runs == 20

@@ -302,9 +302,10 @@ class BatchFunction:
 
     def __init__(self, function, description):
         self.function = function
-        #: The rows' inputs [x, u] (N, 5) and outputs (N, 4 or 24), bound to the evaluation
-        #: (CasADi's buffers: no conversion to and from its matrices; column-major (5, N) and
-        #: (24, N) to CasADi); `evaluate`: by the native build once loaded.
+        #: The input's columns as rows (the physics map's [x, u] (N, 5); a backup rollout's
+        #: one column (1, 6 + 2 samples)) and the output's (N, 4 or 24; (1, 4 samples)),
+        #: bound to the evaluation (CasADi's buffers: no conversion to and from its matrices;
+        #: column-major to CasADi); `evaluate`: by the native build once loaded.
         rows = function.size2_in(0)
         self.arguments = np.zeros((rows, function.size1_in(0)))
         self.results = np.zeros((rows, function.size1_out(0)))
