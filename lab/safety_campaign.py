@@ -101,8 +101,9 @@ def table(part, result, steps):
              f"median {result['settle_ratio_median']:.3f}, largest "
              f"{result['settle_ratio_max']:.3f} ({result['both_settled']} cases)")
 
-    def runs(numbers):
-        listed = f" (runs {', '.join(map(str, numbers))})" if numbers else ''
+    def runs(numbers, shown=10):
+        more = f', ... {len(numbers) - shown} more' if len(numbers) > shown else ''
+        listed = f" (runs {', '.join(map(str, numbers[:shown]))}{more})" if numbers else ''
         return f'{len(numbers)}{listed}'
     over = result['settle_ratio_over_1.05']
     lines += ['', f"- lost by the filtered law where `{result['reference']}` holds "
