@@ -152,23 +152,21 @@ class Rollouts:
         self.function = BatchFunction(casadi.Function(name, [column], [casadi.vec(states)]),
                                       description)
         self.samples = samples
-        self.given = np.zeros((2, samples))
 
     def __call__(self, x0, tensions, felt_range):
         """States (samples + 1, 4) of the backup that flies `tensions` (a felt tension per
         sample; NaN: the reel hold's) from x0."""
-        given = self.given
-        given[0] = 0.0
-        given[1] = 1.0
         n = min(len(tensions), self.samples)
         tensions = np.asarray(tensions[:n], dtype=float)
         hold = ~np.isfinite(tensions)
-        given[0, :n] = np.where(hold, 0.0, tensions)
-        given[1, :n] = hold
         column = self.function.arguments[0]
         column[:4] = x0
         column[4:6] = felt_range
-        column[6:] = given.ravel(order='F')
+        given, flags = column[6::2], column[7::2]     # (tension, hold) per sample
+        given[:] = 0.0
+        flags[:] = 1.0                                # past the tensions given: the hold
+        given[:n] = np.where(hold, 0.0, tensions)
+        flags[:n] = hold
         states = self.function.run()[0].reshape(self.samples, dynamics.PLANAR_DIM)
         return np.vstack([np.asarray(x0, dtype=float), states])
 
