@@ -179,4 +179,5 @@ def test_the_pages_generated_by_their_studies(monkeypatch):
                          'data_loop_heavy_robot', 'data_loop_eccentric_orbit', 'bench_recorder',
                          'bench_lockstep', 'bench_compute', 'bench_compute_offset_free',
                          'bench_qp', 'bench_nmpc', 'bench_sampling', 'bench_training',
-                         'bench_inference', 'bench_campaign', 'safety_campaign'}
+                         'bench_inference', 'bench_campaign', 'safety_campaign',
+                         'campaign_example'}
