@@ -203,3 +203,17 @@ def test_the_safety_campaign_s_specs_load_and_judge_the_swing_as_the_studies_do(
     assert domain.start_box[2].distribution == 'dense_low'
     assert load_spec(os.path.join(ROOT, 'lab', 'campaigns', 'safety_filter_domain.yaml'),
                      runs=20).runs == 20
+
+
+@pytest.mark.parametrize('spec, published', [
+    ('fallback_commands_domain.yaml', 'safety_filter_domain.yaml'),
+    ('fallback_commands_swing.yaml', 'safety_filter.yaml')])
+def test_the_fallback_commands_specs_fly_the_safety_campaign_s_cases(spec, published):
+    """Run n of each is run n of the published campaign (docs/supervisor.md compares them)."""
+    mine = load_spec(os.path.join(ROOT, 'lab', 'campaigns', spec), runs=1000)
+    theirs = load_spec(os.path.join(ROOT, 'lab', 'campaigns', published), runs=1000)
+    assert mine.swing_limit == theirs.swing_limit
+    for run in (0, 4, 104, 641, 999):
+        assert tuple(mine.case(run).x0) == tuple(theirs.case(run).x0)
+        assert mine.case(run).plant == theirs.case(run).plant
+    assert {e.label for e in mine.laws} == {'filtered', 'checked', 'physics'}

@@ -210,6 +210,32 @@ def test_the_filtered_law_holds_where_the_verified_law_alone_does(start, plant):
     assert len(states) == 301 and np.abs(states[:, dynamics.THETA]).max() <= 0.405
 
 
+#: The two losses of the whole-domain campaign (lab/campaigns/safety_filter_domain.yaml --runs
+#: 1000, no swing bound, docs/supervisor.md) where the verified law alone stays in the domain:
+#: fast pay-outs on a weak, lagging actuator. The supervisor's fallback took over from where
+#: the learned law led and, its commands passed unchecked, ran the tether out past l = 2;
+#: with `fallback_commands: certified` its refused commands give way to the filter's.
+LOST_IN_THE_DOMAIN = [pytest.param(start, dict(plant, sensor_noise_std=[noise] * 4),
+                                   id=f'run{run}') for run, start, noise, plant in [
+    (104, (-0.09959700978699734, -0.054272105869234616, -0.9874966474836314, 0.44009733376661425),
+     0.00039158047111960973, {'actuator_gain': 0.8977257621195485,
+                              'actuator_lag': 0.028535507404729744, 'seed': 1479622384}),
+    (641, (-0.24800114251286237, 0.27410884583730327, -0.9545990201998011, 1.1443941518838172),
+     0.0005805996613519162, {'actuator_gain': 0.816515702745273,
+                             'actuator_lag': 0.0099054378250951, 'seed': 1553873654})]]
+
+
+@pytest.mark.parametrize('start, plant', LOST_IN_THE_DOMAIN)
+def test_with_the_fallback_s_commands_certified_the_domain_losses_are_held(start, plant):
+    verified = make_controller('physics_nmpc', theta_max=3.2)
+    states, _ = closed_loop(verified, start, 800, plant=plant)
+    assert len(states) == 801                # the verified law alone stays in the domain
+    filtered = make_controller('koopman_nmpc', theta_max=3.2,
+                               safety={'fallback_commands': 'certified'})
+    states, _ = closed_loop(filtered, start, 800, plant=plant)
+    assert len(states) == 801 and filtered.law.switches >= 1     # (the fallback flew)
+
+
 @pytest.mark.parametrize('start, theta_max', [
     ((0.0, 0.0, -0.9, 0.3), 0.4), ((0.0, 0.0, -0.95, 1.0), 0.4), ((0.05, 0.1, -0.8, 0.8), 0.4),
     (dynamics.PAPER_INITIAL_STATE, 3.2), ((0.0, 0.0, -0.9, 0.3), 3.2)])

@@ -27,7 +27,8 @@ gives way to the verified law flown closed loop, as it is before any certificate
 Under the supervisor a refused command hands the plant to its verified fallback, which plans
 in the shadow at every step (`shadow: auto`) so that it takes over warm, from its own plan, as
 the verified law alone flies (taking over cold, or from a plan not its own, its plans drifted
-off the verified law's and lost robots it held); while it flies, the filter passes it. A
+off the verified law's and lost robots it held); while it flies, the filter passes it, or with
+`fallback_commands: certified` certifies its commands as the learned law's. A
 command's certificate plans with the least tension the actuator surely gives
 (`actuator_sigmas` of the observer's uncertainty below its estimate): an actuator not yet seen
 pulling is known only to the observer's prior.
@@ -104,6 +105,12 @@ class SafetyFilterSettings(LawSettings):
                               "missing: the kept one flies); 0: none, every step certified "
                               "in full (a run then depends on nothing but its inputs)",
                               low=0.0, high=10.0)
+    fallback_commands: str = setting('passed', "the supervisor's verified fallback's "
+                                     "commands: 'passed' unchecked (it flies as it flies "
+                                     "alone); 'certified' as the learned law's, a refused one "
+                                     "replaced by the filter's (the verified law's certified "
+                                     "command or the kept certificate's next tension)",
+                                     choices=('passed', 'certified'))
     actuator_sigmas: float = setting(1.0, "standard deviations of the observer's actuator "
                                      'estimate by which the tension a certificate may plan '
                                      'with is lowered (an actuator not yet seen pulling is '
@@ -295,10 +302,14 @@ class SafetyFilter(Wrapper):
         self.steps += 1
         asked = self.law.compute(x)
         self.requested = asked
-        if self.law.flying == FALLBACK:
+        fallback = self.law.flying == FALLBACK
+        if fallback and (self.filter_settings.fallback_commands == 'passed'
+                         or not math.isfinite(asked)):
             # The supervisor's verified fallback flies, warm from its own plans as the
-            # verified law alone flies (`shadow`): not the filter's to certify. (Certified, its
-            # refused commands gave way to the filter's plans and settled later.)
+            # verified law alone flies (`shadow`), by default unchecked: certified, its refused
+            # commands gave way to the filter's plans and settled later. Unchecked, from where
+            # the learned law led on a weak lagging actuator, it ran the tether out of the
+            # domain (`fallback_commands`, docs/supervisor.md).
             self.certificate, self.backup_plan = VERIFIED, None
             self.counts[VERIFIED] += 1
             return asked
@@ -308,17 +319,18 @@ class SafetyFilter(Wrapper):
             asked = min(max(asked, 0.0), self.u_max)
             backup = self.certify(x, self.felt(asked), self.surely_felt(), start)
         if backup is not None:
-            self.certificate, (self.backup_used, self.backup_plan) = CERTIFIED, backup
-            self.counts[CERTIFIED] += 1
+            self.certificate = VERIFIED if fallback else CERTIFIED
+            self.backup_used, self.backup_plan = backup
+            self.counts[self.certificate] += 1
             return asked
-        handed = self.law.hand_over('certificate')
+        handed = self.law.hand_over('certificate')      # (None while the fallback flies)
         if handed is not None and math.isfinite(handed):
             self.certificate, self.backup_plan = HANDED, None
             self.counts[HANDED] += 1
             command = min(max(handed, 0.0), self.u_max)
         else:
             command = self.rescue(x, felt_range, start)
-            if self.flew_verified:
+            if self.flew_verified and not fallback:
                 # The fallback flies from the next step: it starts from the plan that flew
                 # this one, not cold (one sample behind, which its first RTI step absorbs).
                 self.law.start_from(self.verified.guess())
