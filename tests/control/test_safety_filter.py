@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from tsr_sim import dynamics
 
+from conftest import ROOT
+from tsr_koopman_ctrl.campaign import load_spec
 from tsr_koopman_ctrl.control import closed_loop, make_controller
 from tsr_koopman_ctrl.control.law import Law
 from tsr_koopman_ctrl.control.offset_free import OffsetFree
@@ -36,6 +38,14 @@ class Constant(Law):
 
     def swing_bound(self):
         return self.bound
+
+
+def campaign_cases(spec, *runs):
+    """(start, plant) of `runs` of a lab campaign spec (lab/campaigns/), as its rows flew them
+    (the plant with the run's sensor noise and seed), one pytest parameter each."""
+    campaign = load_spec(str(ROOT / 'lab' / 'campaigns' / spec), runs=1000)
+    return [pytest.param(tuple(campaign.case(run).x0), campaign.case(run).plant,
+                         id=f'run{run}') for run in runs]
 
 
 def verified():
@@ -157,16 +167,10 @@ def test_the_supervisor_alone_loses_this_start_and_the_filter_holds_it():
 #: Two cases of the safety campaign (lab/campaigns/safety_filter.yaml, runs 203 and 198) where
 #: the verified law alone held 0.405 rad and the filtered law lost the bound (203 tumbled): the
 #: learned law's first command refused, the supervisor's fallback started cold the step after.
-HANDED_OVER_CASES = [
-    ((0.05004177330892698, 0.13956389440575803, -0.9695085448206211, 0.4873240405833522),
-     {'actuator_gain': 1.0014224065633879, 'actuator_lag': 0.016715126951080097,
-      'sensor_noise_std': [0.00037133977864959255] * 4, 'seed': 62804904}),
-    ((-0.11496376509856518, 0.053619661030818666, -0.9419424290994652, 0.21738494135434588),
-     {'actuator_gain': 1.1296964401354517, 'actuator_lag': 0.026203386246943947,
-      'sensor_noise_std': [0.00029085606403320575] * 4, 'seed': 854359812})]
+HANDED_OVER_CASES = campaign_cases('safety_filter.yaml', 203, 198)
 
 
-@pytest.mark.parametrize('start, plant', HANDED_OVER_CASES, ids=['run203', 'run198'])
+@pytest.mark.parametrize('start, plant', HANDED_OVER_CASES)
 def test_after_a_hand_over_the_fallback_flies_on_warm(start, plant):
     """Under the filter the fallback plans in the shadow at every step (`shadow: auto`) and
     takes over from its own plan: from these cases the filtered law then holds the bound as
@@ -186,14 +190,7 @@ def test_after_a_hand_over_the_fallback_flies_on_warm(start, plant):
 #: plans drifted off the verified law's. Now under the filter the fallback plans in the
 #: shadow at every step and takes over warm, and a command's certificate plans with the
 #: actuator the observer surely has.
-LOST_AT_SCALE = [pytest.param(start, dict(plant, sensor_noise_std=[noise] * 4), id=f'run{run}')
-                 for run, start, noise, plant in [
-    (861, (-0.12613235252290866, -0.10644026751707529, -0.973264017265616, 0.43950627521684293),
-     0.0003541797281847673, {'actuator_gain': 0.892626314801575,
-                             'actuator_lag': 0.008978568302191948, 'seed': 362595453}),
-    (880, (-0.08620393900056895, -0.01834680888807122, -0.9624854082603103, 0.4896030652371385),
-     0.0009328342249978582, {'actuator_gain': 0.8265490207927543,
-                             'actuator_lag': 0.024909000536804123, 'seed': 1872901652})]]
+LOST_AT_SCALE = campaign_cases('safety_filter.yaml', 861, 880)
 
 
 @pytest.mark.parametrize('start, plant', LOST_AT_SCALE)
@@ -215,14 +212,7 @@ def test_the_filtered_law_holds_where_the_verified_law_alone_does(start, plant):
 #: fast pay-outs on a weak, lagging actuator. The supervisor's fallback took over from where
 #: the learned law led and, its commands passed unchecked, ran the tether out past l = 2;
 #: with `fallback_commands: certified` its refused commands give way to the filter's.
-LOST_IN_THE_DOMAIN = [pytest.param(start, dict(plant, sensor_noise_std=[noise] * 4),
-                                   id=f'run{run}') for run, start, noise, plant in [
-    (104, (-0.09959700978699734, -0.054272105869234616, -0.9874966474836314, 0.44009733376661425),
-     0.00039158047111960973, {'actuator_gain': 0.8977257621195485,
-                              'actuator_lag': 0.028535507404729744, 'seed': 1479622384}),
-    (641, (-0.24800114251286237, 0.27410884583730327, -0.9545990201998011, 1.1443941518838172),
-     0.0005805996613519162, {'actuator_gain': 0.816515702745273,
-                             'actuator_lag': 0.0099054378250951, 'seed': 1553873654})]]
+LOST_IN_THE_DOMAIN = campaign_cases('safety_filter_domain.yaml', 104, 641)
 
 
 @pytest.mark.parametrize('start, plant', LOST_IN_THE_DOMAIN)
