@@ -13,9 +13,11 @@ import argparse
 import os
 import re
 
+from lab import campaigns
 from lab.report import check_page, copy_figure, marker_name, stamp, write_into_page, \
     write_results
 
+#: The spec the README's first campaign command flies (as the README names it).
 SPEC = 'lab/campaigns/safety_filter.yaml'
 #: The report's figures and the names they are copied to beside the page.
 FIGURES = {'starts.png': 'figures/campaign_starts.png',
@@ -28,8 +30,7 @@ def parser():
     p = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     p.add_argument('--out', default='lab/results/campaign_example')
     p.add_argument('--page', default='', help='docs page with the markers named after --out')
-    p.add_argument('--workers', type=int, help='local Dask workers (default: one per core)')
-    p.add_argument('--address', help='a Dask scheduler to run on instead')
+    campaigns.add_engine_options(p)
     return p
 
 
@@ -50,11 +51,10 @@ def main(argv=None):
     args = parser().parse_args(argv)
     if args.page:
         check_page(args.page, marker_name(args.out))
-    from tsr_koopman_ctrl.campaign import load_spec, report, run_campaign
-    resume = os.path.exists(os.path.join(args.out, 'spec.yaml'))
-    run_campaign(load_spec(SPEC), args.out, workers=args.workers, address=args.address,
-                 resume=resume, report=False)
-    text = report(args.out)
+    from tsr_koopman_ctrl.campaign import load_spec
+    campaigns.fly(load_spec(SPEC), args.out, args.workers, args.address)
+    with open(os.path.join(args.out, 'report.md')) as f:       # (written by the campaign)
+        text = f.read()
     heading = text.splitlines()[0].split(': ', 1)[1]       # '# Campaign: 40 runs x ...'
     command = ('python -m tsr_koopman_ctrl.commands.campaign --spec '
                f'{SPEC} --out {args.out}')
